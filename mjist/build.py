@@ -1,0 +1,247 @@
+"""The build pipeline: mesh → voxelize → packing → hierarchy → certified tree."""
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+
+from .bound import certify, tight_bound
+from .bvh import BVH
+from .hierarchy import build_hierarchy
+from .mesh import load_mesh
+from .packing import band_free_distance, greedy_pack
+from .tree import InnerSphereTree
+from .voxelize import Voxelizer, encode
+
+LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
+MAX_LEVELS = 12
+BAND_WIDTH = 2.0  # band half-width around gap regions, in lattice spacings
+MAX_BAND_POINTS = 40_000_000  # ~1.5 GB of band state; beyond that refinement stops with a warning
+SHRINK = 1e-9  # relative radius shrink against rounding overlaps
+DEFAULT_REL_ERROR = 5e-3  # default max_error, relative to the bounding-box diagonal
+
+
+class _Progress:
+    """Stage progress on stderr (tqdm), silent unless asked."""
+
+    def __init__(self, enabled: bool, total: int):
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="stage", leave=False, dynamic_ncols=True)
+
+    def stage(self, name: str):
+        if self.bar is not None:
+            self.bar.set_description(name)
+
+    def step(self, info: str = ""):
+        if self.bar is not None:
+            if info:
+                self.bar.set_postfix_str(info)
+            self.bar.update(1)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def build(
+    mesh,
+    *,
+    max_error: float | None = None,
+    leaves: int | None = None,
+    branching: int = 4,
+    seed: int = 0,
+    repair: bool = False,
+    progress: bool = False,
+) -> InnerSphereTree:
+    """Build an Inner Sphere Tree of a closed triangle mesh.
+
+    Parameters
+    ----------
+    mesh : path, trimesh.Trimesh or (vertices, faces)
+        A closed, consistently wound surface (several shells are fine). Units are the
+        mesh's own; ``max_error`` and all results are in the same units.
+    max_error : float, optional
+        Target for the certified error bound ε (max distance from the surface to the
+        spheres). Default: 0.5 % of the bounding-box diagonal (when ``leaves`` is not given).
+    leaves : int, optional
+        Stop packing after this many leaf spheres (largest first). With ``max_error``
+        too, packing stops at whichever comes first.
+    branching : int
+        Children per inner node (Batch Neural Gas prototypes), 2..16.
+    seed : int
+        Seed of the clustering; same mesh + parameters + seed gives the same tree.
+    repair : bool
+        Let trimesh fix degenerate faces, winding, inversion and holes (see ``load_mesh``).
+    progress : bool
+        Show a progress bar per stage on stderr.
+
+    Returns
+    -------
+    InnerSphereTree
+        With ``error_bound`` certified (see ``mjist.bound``) and ``coverage``.
+
+    Raises
+    ------
+    MeshError
+        The mesh is not a closed solid (see ``load_mesh``).
+    ValueError
+        Parameters out of range (``max_error`` not positive or absurd for the mesh size).
+    """
+    if not 2 <= int(branching) <= 16:
+        raise ValueError(f"branching={branching} must be between 2 and 16")
+    if leaves is not None and int(leaves) < 1:
+        raise ValueError(f"leaves={leaves} must be at least 1")
+    timings: dict[str, float] = {}
+    bar = _Progress(progress, 5)
+    t0 = time.perf_counter()
+    bar.stage("load + validate")
+    m = load_mesh(mesh, repair=repair)
+    timings["load"] = time.perf_counter() - t0
+    bar.step(f"{len(m.faces)} faces, {m.shells} shell(s)")
+
+    ext = m.extents
+    diag = float(np.linalg.norm(ext))
+    if max_error is None and leaves is None:
+        max_error = DEFAULT_REL_ERROR * diag
+    if max_error is not None:
+        max_error = float(max_error)
+        if not np.isfinite(max_error) or max_error <= 0:
+            raise ValueError(f"max_error={max_error} must be a positive number (mesh units)")
+        if max_error >= 0.25 * float(ext.max()):
+            raise ValueError(
+                f"max_error={max_error:g} is not small against the mesh (largest extent {ext.max():g}): "
+                "check the units (a mesh in metres needs max_error in metres, e.g. 5e-5 for 0.05 mm)"
+            )
+        if max_error < 1e-6 * diag:
+            raise ValueError(
+                f"max_error={max_error:g} is below 1e-6 of the mesh size ({diag:g}): "
+                "check the units (a mesh in millimetres needs max_error in millimetres)"
+            )
+    target = max_error if max_error is not None else 0.0
+    max_leaves = int(leaves) if leaves is not None else np.iinfo(np.int64).max
+
+    # --- voxelize + pack, level by level ---------------------------------------------------
+    t = time.perf_counter()
+    bar.stage("voxelize + pack")
+    h0 = float(ext.max()) / LEVEL0_CELLS
+    vox = Voxelizer(m.vertices, m.faces, h0)
+    t_vox = 0.0
+    t_pack = 0.0
+    t_cert = 0.0
+    tv = time.perf_counter()
+    P, D = vox.level0()
+    t_vox += time.perf_counter() - tv
+    tp = time.perf_counter()
+    keys = encode(np.rint((P - vox.origin) / h0).astype(np.int64))
+    C, R = greedy_pack(P, D.copy(), keys, vox.origin, h0, 0.5 * h0, max_leaves, SHRINK)
+    t_pack += time.perf_counter() - tp
+    levels = 0
+    for level in range(1, MAX_LEVELS + 1):
+        if len(R) >= max_leaves:
+            break
+        h = vox.spacing(level)
+        tc = time.perf_counter()
+        sph_bvh = BVH.of_spheres(C, R) if len(R) else None
+        if len(R):
+            ub, _, seeds = certify(m.vertices, m.faces, C, R, target, h, want_seeds=True, bvh=sph_bvh)
+        else:
+            ub, seeds = np.inf, m.vertices[m.faces].mean(axis=1)
+        t_cert += time.perf_counter() - tc
+        if ub <= target or len(seeds) == 0:
+            break
+        if h < 1e-7 * diag:
+            break
+        tv = time.perf_counter()
+        r_min = 0.5 * h
+        P = vox.band(level, seeds, BAND_WIDTH * h)
+        if len(P) > MAX_BAND_POINTS:
+            warnings.warn(
+                f"lattice level {level} would need {len(P)} band points (limit {MAX_BAND_POINTS}); "
+                "stopping refinement: pass a larger max_error or a leaves= limit",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+            break
+        f = band_free_distance(P, vox, C, R, r_min)
+        keep = f >= r_min
+        P, f = P[keep], f[keep]
+        t_vox += time.perf_counter() - tv
+        tp = time.perf_counter()
+        keys = encode(np.rint((P - vox.origin) / h).astype(np.int64))
+        Cn, Rn = greedy_pack(P, f, keys, vox.origin, h, r_min, max_leaves - len(R), SHRINK)
+        C = np.concatenate([C, Cn])
+        R = np.concatenate([R, Rn])
+        t_pack += time.perf_counter() - tp
+        levels = level
+    timings["voxelize"] = t_vox
+    timings["pack"] = t_pack
+    if len(R) == 0:
+        raise ValueError(
+            "no inner sphere fits: the mesh is thinner than the level-0 lattice; "
+            "pass a smaller max_error or check the mesh"
+        )
+    bar.step(f"{len(R)} spheres, {levels + 1} levels")
+
+    # --- hierarchy --------------------------------------------------------------------------
+    bar.stage("hierarchy (batch neural gas)")
+    t = time.perf_counter()
+    # determinism: order leaves by (radius desc, then coordinates) before clustering
+    order = np.lexsort((C[:, 2], C[:, 1], C[:, 0], -R))
+    C, R = C[order], R[order]
+    (centers, radii, cstart, ccount, parent, depth, lstart, lend, perm) = build_hierarchy(C, R, int(branching), int(seed))
+    leaf_centers = np.ascontiguousarray(C[perm])
+    leaf_radii = np.ascontiguousarray(R[perm])
+    leaf_node = np.empty(len(R), np.int64)
+    is_leaf = ccount == 0
+    leaf_node[lstart[is_leaf]] = np.flatnonzero(is_leaf)
+    timings["hierarchy"] = time.perf_counter() - t
+    bar.step(f"{len(radii)} nodes, depth {int(depth.max())}")
+
+    # --- certified error bound --------------------------------------------------------------
+    bar.stage("error bound")
+    t = time.perf_counter()
+    eps, eps_lo = tight_bound(m.vertices, m.faces, leaf_centers, leaf_radii)
+    timings["bound"] = time.perf_counter() - t + t_cert
+    timings["total"] = time.perf_counter() - t0
+    bar.step(f"eps {eps:.3g}")
+    bar.close()
+    if max_error is not None and eps > max_error and len(R) < max_leaves:
+        warnings.warn(
+            f"certified error bound {eps:.4g} exceeds max_error={max_error:.4g} after {levels + 1} "
+            "lattice levels (thin features narrower than the finest lattice?)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return InnerSphereTree(
+        centers=centers,
+        radii=radii,
+        child_start=cstart,
+        child_count=ccount,
+        parent=parent,
+        depth_of=depth,
+        leaf_start=lstart,
+        leaf_end=lend,
+        leaf_centers=leaf_centers,
+        leaf_radii=leaf_radii,
+        leaf_node=leaf_node,
+        error_bound=float(eps),
+        error_lower=float(eps_lo),
+        mesh_volume=m.volume,
+        mesh_hash=m.content_hash,
+        params={"max_error": max_error, "leaves": leaves, "branching": int(branching), "seed": int(seed), "repair": bool(repair)},
+        timings=timings,
+        info={
+            "mesh_vertices": int(len(m.vertices)),
+            "mesh_faces": int(len(m.faces)),
+            "mesh_shells": int(m.shells),
+            "mesh_area": m.area,
+            "lattice_levels": levels + 1,
+            "finest_spacing": vox.spacing(levels),
+            "points_evaluated": int(vox.points_evaluated),
+            "repairs": list(m.repairs),
+        },
+    )

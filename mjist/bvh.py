@@ -1,0 +1,416 @@
+"""Bounding volume hierarchies over triangles and spheres (numba kernels).
+
+Used at build time only: the voxelizer asks the triangle BVH for closest points and
+ray-parity inside tests, the packer and the error certificate ask the sphere BVH for
+the distance to the union of spheres.
+
+Layout (structure of arrays, node 0 is the root):
+``lo, hi (m, 3)`` node boxes, ``left, right (m,)`` child node ids (-1 for leaves),
+``start, count (m,)`` leaf ranges into ``order`` (the primitive permutation).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+LEAF_SIZE = 4
+STACK = 128  # depth bound: median splits give depth ~log2(n/LEAF_SIZE) < 40
+
+
+@njit(cache=True)
+def build_bvh(prim_lo, prim_hi):
+    """Median-split BVH over axis-aligned boxes ``prim_lo, prim_hi (n, 3)``."""
+    n = prim_lo.shape[0]
+    m_max = max(1, 2 * n)
+    lo = np.empty((m_max, 3))
+    hi = np.empty((m_max, 3))
+    left = np.full(m_max, -1, np.int64)
+    right = np.full(m_max, -1, np.int64)
+    start = np.zeros(m_max, np.int64)
+    count = np.zeros(m_max, np.int64)
+    order = np.arange(n)
+    cen = 0.5 * (prim_lo + prim_hi)
+    st_node = np.empty(STACK, np.int64)
+    st_a = np.empty(STACK, np.int64)
+    st_b = np.empty(STACK, np.int64)
+    sp = 0
+    st_node[0] = 0
+    st_a[0] = 0
+    st_b[0] = n
+    sp = 1
+    m = 1
+    while sp > 0:
+        sp -= 1
+        node = st_node[sp]
+        a = st_a[sp]
+        b = st_b[sp]
+        for k in range(3):
+            lo[node, k] = np.inf
+            hi[node, k] = -np.inf
+        clo = np.full(3, np.inf)
+        chi = np.full(3, -np.inf)
+        for i in range(a, b):
+            j = order[i]
+            for k in range(3):
+                lo[node, k] = min(lo[node, k], prim_lo[j, k])
+                hi[node, k] = max(hi[node, k], prim_hi[j, k])
+                clo[k] = min(clo[k], cen[j, k])
+                chi[k] = max(chi[k], cen[j, k])
+        if b - a <= LEAF_SIZE:
+            start[node] = a
+            count[node] = b - a
+            continue
+        axis = 0
+        ext = chi - clo
+        if ext[1] > ext[axis]:
+            axis = 1
+        if ext[2] > ext[axis]:
+            axis = 2
+        seg = order[a:b].copy()
+        keys = np.empty(b - a)
+        for i in range(b - a):
+            keys[i] = cen[seg[i], axis]
+        srt = np.argsort(keys, kind="mergesort")
+        for i in range(b - a):
+            order[a + i] = seg[srt[i]]
+        mid = (a + b) // 2
+        left[node] = m
+        right[node] = m + 1
+        st_node[sp] = m
+        st_a[sp] = a
+        st_b[sp] = mid
+        st_node[sp + 1] = m + 1
+        st_a[sp + 1] = mid
+        st_b[sp + 1] = b
+        sp += 2
+        m += 2
+    return lo[:m].copy(), hi[:m].copy(), left[:m].copy(), right[:m].copy(), start[:m].copy(), count[:m].copy(), order
+
+
+@njit(cache=True, inline="always")
+def box_dist2(p0, p1, p2, lo, hi, node):
+    d2 = 0.0
+    v = lo[node, 0] - p0
+    if v > 0:
+        d2 += v * v
+    else:
+        v = p0 - hi[node, 0]
+        if v > 0:
+            d2 += v * v
+    v = lo[node, 1] - p1
+    if v > 0:
+        d2 += v * v
+    else:
+        v = p1 - hi[node, 1]
+        if v > 0:
+            d2 += v * v
+    v = lo[node, 2] - p2
+    if v > 0:
+        d2 += v * v
+    else:
+        v = p2 - hi[node, 2]
+        if v > 0:
+            d2 += v * v
+    return d2
+
+
+@njit(cache=True, inline="always")
+def _dot(ax, ay, az, bx, by, bz):
+    return ax * bx + ay * by + az * bz
+
+
+@njit(cache=True)
+def closest_on_triangle(px, py, pz, V, i0, i1, i2):
+    """Closest point to p on triangle (V[i0], V[i1], V[i2]) (Ericson, RTCD 5.1.5), scalar form."""
+    ax, ay, az = V[i0, 0], V[i0, 1], V[i0, 2]
+    bx, by, bz = V[i1, 0], V[i1, 1], V[i1, 2]
+    cx, cy, cz = V[i2, 0], V[i2, 1], V[i2, 2]
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = _dot(abx, aby, abz, apx, apy, apz)
+    d2 = _dot(acx, acy, acz, apx, apy, apz)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return ax, ay, az
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3 = _dot(abx, aby, abz, bpx, bpy, bpz)
+    d4 = _dot(acx, acy, acz, bpx, bpy, bpz)
+    if d3 >= 0.0 and d4 <= d3:
+        return bx, by, bz
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return ax + v * abx, ay + v * aby, az + v * abz
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5 = _dot(abx, aby, abz, cpx, cpy, cpz)
+    d6 = _dot(acx, acy, acz, cpx, cpy, cpz)
+    if d6 >= 0.0 and d5 <= d6:
+        return cx, cy, cz
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return ax + w * acx, ay + w * acy, az + w * acz
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz)
+    denom = 1.0 / (va + vb + vc)
+    v = vb * denom
+    w = vc * denom
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+
+
+@njit(cache=True)
+def tri_closest(p, V, F, lo, hi, left, right, start, count, order, stack, best=np.inf):
+    """Squared distance from ``p`` to the mesh and the closest point (x, y, z).
+
+    ``best`` is an initial squared bound: when nothing is closer it is returned unchanged.
+    """
+    qx = qy = qz = 0.0
+    px, py, pz = p[0], p[1], p[2]
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if box_dist2(px, py, pz, lo, hi, node) >= best:
+            continue
+        if left[node] < 0:
+            for i in range(start[node], start[node] + count[node]):
+                f = order[i]
+                x, y, z = closest_on_triangle(px, py, pz, V, F[f, 0], F[f, 1], F[f, 2])
+                d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+                if d2 < best:
+                    best = d2
+                    qx, qy, qz = x, y, z
+            continue
+        l = left[node]
+        r = right[node]
+        dl = box_dist2(px, py, pz, lo, hi, l)
+        dr = box_dist2(px, py, pz, lo, hi, r)
+        # push the farther child first so the nearer one is popped next
+        if dl < dr:
+            stack[sp] = r
+            stack[sp + 1] = l
+        else:
+            stack[sp] = l
+            stack[sp + 1] = r
+        sp += 2
+    return best, qx, qy, qz
+
+
+# Ray directions for parity tests: generic (no two components equal, irrational-looking)
+# so axis-aligned meshes are never hit exactly along an edge; the next one is used when a
+# ray grazes an edge or vertex.
+RAY_DIRS = np.array(
+    [
+        [0.5773502, 0.5773913, 0.5773094],
+        [-0.3129583, 0.8021761, 0.5084637],
+        [0.7071234, -0.2983417, 0.6409611],
+        [-0.6015492, -0.5224315, 0.6044712],
+        [0.1357911, 0.2468024, -0.9594929],
+        [-0.8801234, 0.3217865, -0.3491273],
+        [0.4203981, -0.8812355, -0.2160357],
+    ]
+)
+for _k in range(RAY_DIRS.shape[0]):
+    RAY_DIRS[_k] /= np.linalg.norm(RAY_DIRS[_k])
+
+
+@njit(cache=True, inline="always")
+def _ray_box(o, inv, lo, hi, node):
+    tmin = 0.0
+    tmax = np.inf
+    for k in range(3):
+        t1 = (lo[node, k] - o[k]) * inv[k]
+        t2 = (hi[node, k] - o[k]) * inv[k]
+        if t1 > t2:
+            t1, t2 = t2, t1
+        tmin = max(tmin, t1)
+        tmax = min(tmax, t2)
+    return tmin <= tmax
+
+
+@njit(cache=True)
+def ray_parity(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol):
+    """Number of triangle crossings of the ray ``o + t d`` (t > 0), Möller–Trumbore.
+
+    Returns ``(crossings, ambiguous)``; ``ambiguous`` is True when some hit lies within
+    ``tol`` (barycentric) of an edge or vertex, or the ray is nearly in a triangle's plane,
+    or the origin is on a triangle: the caller then retries with another direction.
+    """
+    inv = np.empty(3)
+    for k in range(3):
+        inv[k] = 1.0 / d[k] if d[k] != 0.0 else 1e300
+    dx, dy, dz = d[0], d[1], d[2]
+    ox, oy, oz = o[0], o[1], o[2]
+    n = 0
+    amb = False
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if not _ray_box(o, inv, lo, hi, node):
+            continue
+        if left[node] >= 0:
+            stack[sp] = left[node]
+            stack[sp + 1] = right[node]
+            sp += 2
+            continue
+        for i in range(start[node], start[node] + count[node]):
+            f = order[i]
+            a = F[f, 0]
+            ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
+            e1x, e1y, e1z = V[F[f, 1], 0] - ax, V[F[f, 1], 1] - ay, V[F[f, 1], 2] - az
+            e2x, e2y, e2z = V[F[f, 2], 0] - ax, V[F[f, 2], 1] - ay, V[F[f, 2], 2] - az
+            # pv = d x e2
+            pvx = dy * e2z - dz * e2y
+            pvy = dz * e2x - dx * e2z
+            pvz = dx * e2y - dy * e2x
+            det = e1x * pvx + e1y * pvy + e1z * pvz
+            l1 = np.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+            l2 = np.sqrt(e2x * e2x + e2y * e2y + e2z * e2z)
+            tx, ty, tz = ox - ax, oy - ay, oz - az
+            if abs(det) <= 1e-12 * l1 * l2:
+                # ray (nearly) in the triangle's plane: ambiguous only if the origin is in that plane
+                nx = e1y * e2z - e1z * e2y
+                ny = e1z * e2x - e1x * e2z
+                nz = e1x * e2y - e1y * e2x
+                if abs(tx * nx + ty * ny + tz * nz) <= 1e-9 * l1 * l2 * (l1 + l2):
+                    amb = True
+                continue
+            inv_det = 1.0 / det
+            u = (tx * pvx + ty * pvy + tz * pvz) * inv_det
+            if u < -tol or u > 1.0 + tol:
+                continue
+            qx = ty * e1z - tz * e1y
+            qy = tz * e1x - tx * e1z
+            qz = tx * e1y - ty * e1x
+            v = (dx * qx + dy * qy + dz * qz) * inv_det
+            if v < -tol or u + v > 1.0 + tol:
+                continue
+            t = (e2x * qx + e2y * qy + e2z * qz) * inv_det
+            tscale = tol * (l1 + l2)
+            if t < -tscale:
+                continue
+            if t <= tscale:
+                amb = True  # origin on the surface
+                continue
+            if u <= tol or v <= tol or u + v >= 1.0 - tol:
+                amb = True
+                continue
+            n += 1
+    return n, amb
+
+
+@njit(cache=True)
+def inside(p, V, F, lo, hi, left, right, start, count, order, stack, dirs):
+    """Parity inside test, retried along the next direction while a ray grazes."""
+    votes = 0
+    for k in range(dirs.shape[0]):
+        n, amb = ray_parity(p, dirs[k], V, F, lo, hi, left, right, start, count, order, stack, 1e-9)
+        if not amb:
+            return (n & 1) == 1
+        votes += n & 1
+    # every direction grazed something (point essentially on the surface): majority vote
+    return 2 * votes > dirs.shape[0]
+
+
+@njit(cache=True, parallel=True)
+def signed_distance(P, V, F, lo, hi, left, right, start, count, order, dirs):
+    """Signed distance of points ``P (n, 3)`` to a closed mesh: positive inside.
+
+    Magnitude from the BVH closest point, sign from ray parity (robust retries).
+    """
+    n = P.shape[0]
+    out = np.empty(n)
+    for i in prange(n):
+        stack = np.empty(STACK, np.int64)
+        d2, _, _, _ = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
+        d = np.sqrt(d2)
+        if inside(P[i], V, F, lo, hi, left, right, start, count, order, stack, dirs):
+            out[i] = d
+        else:
+            out[i] = -d
+    return out
+
+
+@njit(cache=True, parallel=True)
+def closest_points(P, V, F, lo, hi, left, right, start, count, order):
+    """Unsigned distance and closest surface point for each row of ``P``."""
+    n = P.shape[0]
+    dist = np.empty(n)
+    q = np.empty((n, 3))
+    for i in prange(n):
+        stack = np.empty(STACK, np.int64)
+        d2, x, y, z = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
+        dist[i] = np.sqrt(d2)
+        q[i, 0] = x
+        q[i, 1] = y
+        q[i, 2] = z
+    return dist, q
+
+
+@njit(cache=True)
+def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
+    """Distance from ``p`` to the union of spheres, clamped at 0, searched below ``bound``.
+
+    Returns ``(gap, index)``; ``index`` is -1 when no sphere comes closer than ``bound``.
+    Node boxes enclose their spheres, so the box distance is a lower bound of the gap.
+    """
+    best = bound
+    bi = -1
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        bd = box_dist2(p[0], p[1], p[2], lo, hi, node)
+        if bd >= best * best:
+            continue
+        if left[node] < 0:
+            for i in range(start[node], start[node] + count[node]):
+                j = order[i]
+                g = np.sqrt((p[0] - C[j, 0]) ** 2 + (p[1] - C[j, 1]) ** 2 + (p[2] - C[j, 2]) ** 2) - R[j]
+                if g < best:
+                    best = g
+                    bi = j
+                    if g <= 0.0:
+                        return 0.0, j
+            continue
+        l = left[node]
+        r = right[node]
+        dl = box_dist2(p[0], p[1], p[2], lo, hi, l)
+        dr = box_dist2(p[0], p[1], p[2], lo, hi, r)
+        if dl < dr:
+            stack[sp] = r
+            stack[sp + 1] = l
+        else:
+            stack[sp] = l
+            stack[sp + 1] = r
+        sp += 2
+    return max(best, 0.0), bi
+
+
+class BVH:
+    """A BVH over triangles ``(V, F)`` or over spheres ``(C, R)`` (build-time helper)."""
+
+    def __init__(self, lo, hi):
+        (self.lo, self.hi, self.left, self.right, self.start, self.count, self.order) = build_bvh(
+            np.ascontiguousarray(lo, dtype=np.float64), np.ascontiguousarray(hi, dtype=np.float64)
+        )
+
+    @property
+    def arrays(self):
+        return self.lo, self.hi, self.left, self.right, self.start, self.count, self.order
+
+    @classmethod
+    def of_triangles(cls, V, F):
+        T = V[F]
+        return cls(T.min(axis=1), T.max(axis=1))
+
+    @classmethod
+    def of_spheres(cls, C, R):
+        r = R[:, None]
+        return cls(C - r, C + r)

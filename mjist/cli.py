@@ -1,0 +1,107 @@
+"""Command line: ``mjist build MESH [-o OUT] [--max-error E] [--leaves N] [--branching B] [--seed S]``."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+MODELS = Path(__file__).resolve().parent.parent / "models"
+
+
+def _report(tree, out: str | None, mesh: str) -> str:
+    s = tree.stats()
+    t = s["timings"]
+    lines = [
+        f"mesh        {mesh}: {s['mesh_vertices']} vertices, {s['mesh_faces']} faces, {s['mesh_shells']} shell(s)",
+        f"leaves      {s['leaves']}   nodes {s['nodes']}   depth {s['depth']}   branching {s['params']['branching']}",
+        f"error bound ε = {s['error_bound']:.6g} (certified; true gap >= {s['error_lower']:.6g}), mesh units",
+        f"coverage    {100 * s['coverage']:.1f} % of the mesh volume   leaf radii {s['min_leaf_radius']:.3g} .. {s['max_leaf_radius']:.3g}",
+        "time        " + "  ".join(f"{k} {v:.2f}s" for k, v in t.items()),
+    ]
+    if s.get("repairs"):
+        lines.append("repairs     " + "; ".join(s["repairs"]))
+    if out:
+        lines.append(f"saved       {out}")
+    return "\n".join(lines)
+
+
+def _cmd_build(args) -> int:
+    from . import build
+    from .errors import MeshError
+
+    meshes = args.mesh or sorted(str(p) for p in MODELS.glob("*.stl")) + sorted(str(p) for p in MODELS.glob("*.obj"))
+    if not meshes:
+        print("mjist build: no MESH given and no bundled models found", file=sys.stderr)
+        return 2
+    if args.output and len(meshes) > 1:
+        print("mjist build: -o/--output takes one MESH; build several into --out-dir", file=sys.stderr)
+        return 2
+    for mesh in meshes:
+        out = args.output or os.path.join(args.out_dir, Path(mesh).stem + ".ist.npz")
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                tree = build(
+                    mesh, max_error=args.max_error, leaves=args.leaves, branching=args.branching,
+                    seed=args.seed, repair=args.repair, progress=not args.quiet,
+                )
+        except (MeshError, ValueError) as exc:
+            print(f"mjist build: {mesh}: {exc}", file=sys.stderr)
+            return 1
+        for w in caught:
+            print(f"warning: {w.message}", file=sys.stderr)
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        tree.save(out)
+        print(_report(tree, out, mesh))
+        if args.json:
+            with open(args.json if len(meshes) == 1 else f"{args.json}.{Path(mesh).stem}.json", "w") as fh:
+                json.dump(tree.stats(), fh, indent=2)
+        print()
+    return 0
+
+
+def _cmd_info(args) -> int:
+    from .tree import load_tree
+    from .errors import TreeFileError
+
+    try:
+        tree = load_tree(args.tree)
+    except TreeFileError as exc:
+        print(f"mjist info: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps(tree.stats(), indent=2))
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    b = sub.add_parser("build", help="build the Inner Sphere Tree of a closed mesh (default: the bundled models)")
+    b.add_argument("mesh", nargs="*", help="STL/OBJ/PLY file(s); default: every mesh in models/")
+    b.add_argument("-o", "--output", help="output .npz (default: OUT_DIR/<mesh>.ist.npz)")
+    b.add_argument("--out-dir", default="out", help="directory for outputs (default: out/)")
+    b.add_argument("--max-error", type=float, default=None, help="target certified error bound ε, mesh units")
+    b.add_argument("--leaves", type=int, default=None, help="maximum number of leaf spheres")
+    b.add_argument("--branching", type=int, default=4, help="children per node (default 4)")
+    b.add_argument("--seed", type=int, default=0, help="clustering seed (default 0)")
+    b.add_argument("--repair", action="store_true", help="let trimesh fix winding, inversion, holes, degenerate faces")
+    b.add_argument("--json", help="also write the report as JSON to this file")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    b.set_defaults(func=_cmd_build)
+    i = sub.add_parser("info", help="print the statistics of a saved tree")
+    i.add_argument("tree")
+    i.set_defaults(func=_cmd_info)
+    args = p.parse_args(argv)
+    t = time.perf_counter()
+    rc = args.func(args)
+    if args.cmd == "build" and rc == 0:
+        print(f"done in {time.perf_counter() - t:.1f}s")
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,291 @@
+"""Stage 4: the sphere hierarchy, top-down by Batch Neural Gas.
+
+Each inner node's leaf spheres are clustered into ``B`` groups by Batch Neural Gas
+(Cottrell, Hammer, Hasenfuß, Villmann 2006): prototypes ``w_j`` are set to the
+weighted mean ``sum_i h_λ(k_ij) v_i x_i / sum_i h_λ(k_ij) v_i`` where ``k_ij`` is the
+rank of prototype j by distance to sphere i, ``h_λ(k) = exp(-k/λ)``, ``v_i`` the
+sphere's volume and λ decays geometrically from B/2 to 0.01 per iteration. It stops at
+``max_iter`` or when no prototype moves more than ``tol`` times the node size. Each
+sphere joins its nearest prototype; each group becomes a child, recursively.
+
+Every node sphere encloses all leaf spheres below it (a wrapped hierarchy): its centre is
+refined by the Bădoiu–Clarkson iteration for the minimal ball enclosing balls, and its
+radius is then set to ``max |c - c_i| + r_i`` over its leaves, so enclosure holds exactly
+whatever the iteration did.
+
+Nodes are numbered breadth first, so each node's children are contiguous
+(``child_start``, ``child_count``); leaves are reordered so each node's leaves are a
+contiguous range (``leaf_start``, ``leaf_end``).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+BNG_MAX_ITER = 24
+BNG_TOL = 1e-4
+MEB_ITER = 64
+BNG_SAMPLE = 1024  # larger nodes cluster a stride subsample, then assign all
+
+
+@njit(cache=True)
+def _mix(x):
+    """splitmix64 finaliser: a deterministic, thread-independent pseudo-random hash."""
+    x = (x + np.uint64(0x9E3779B97F4A7C15)) & np.uint64(0xFFFFFFFFFFFFFFFF)
+    x = ((x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)) & np.uint64(0xFFFFFFFFFFFFFFFF)
+    x = ((x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)) & np.uint64(0xFFFFFFFFFFFFFFFF)
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(cache=True)
+def _bng(X, w, k, max_iter, tol, key):
+    """Batch Neural Gas prototypes ``(k, 3)`` of points ``X`` with weights ``w``.
+
+    Initial prototypes are distinct points picked by hashing ``key`` (seed and node id), so
+    the result does not depend on thread scheduling.
+    """
+    n = X.shape[0]
+    lo = np.empty(3)
+    hi_ = np.empty(3)
+    for d in range(3):
+        lo[d] = X[:, d].min()
+        hi_[d] = X[:, d].max()
+    size = np.sqrt(((hi_ - lo) ** 2).sum())
+    # deterministic distinct initial prototypes (global RNG seeded by the caller)
+    W = np.empty((k, 3))
+    picked = np.full(k, -1, np.int64)
+    h = np.uint64(key)
+    for j in range(k):
+        while True:
+            h = _mix(h)
+            cand = int(h % np.uint64(n))
+            ok = True
+            for q in range(j):
+                if picked[q] == cand:
+                    ok = False
+            if ok:
+                break
+        picked[j] = cand
+        W[j] = X[cand]
+    lam0 = k / 2.0
+    lamf = 0.01
+    dist = np.empty(k)
+    rank = np.empty(k, np.int64)
+    num = np.empty((k, 3))
+    den = np.empty(k)
+    hk = np.empty(k)
+    for t in range(max_iter):
+        lam = lam0 * (lamf / lam0) ** (t / max(1, max_iter - 1))
+        for j in range(k):
+            hk[j] = np.exp(-j / lam)
+        num[:] = 0.0
+        den[:] = 0.0
+        for i in range(n):
+            for j in range(k):
+                dist[j] = ((X[i] - W[j]) ** 2).sum()
+            # ranks by insertion (k is small)
+            for j in range(k):
+                r = 0
+                for q in range(k):
+                    if dist[q] < dist[j] or (dist[q] == dist[j] and q < j):
+                        r += 1
+                rank[j] = r
+            for j in range(k):
+                hw = hk[rank[j]] * w[i]
+                den[j] += hw
+                num[j] += hw * X[i]
+        move = 0.0
+        for j in range(k):
+            if den[j] > 0:
+                nw = num[j] / den[j]
+                move = max(move, np.sqrt(((nw - W[j]) ** 2).sum()))
+                W[j] = nw
+        if move <= tol * size:
+            break
+    return W
+
+
+@njit(cache=True)
+def _assign(X, W, labels):
+    for i in range(X.shape[0]):
+        best = np.inf
+        for j in range(W.shape[0]):
+            dd = (X[i, 0] - W[j, 0]) ** 2 + (X[i, 1] - W[j, 1]) ** 2 + (X[i, 2] - W[j, 2]) ** 2
+            if dd < best:
+                best = dd
+                labels[i] = j
+
+
+@njit(cache=True)
+def _enclosing(C, R, idx, c0):
+    """Ball enclosing the balls ``C[idx], R[idx]`` (Bădoiu–Clarkson from ``c0``, exact final radius)."""
+    m = idx.shape[0]
+    c = c0.copy()
+    best_c = c.copy()
+    best_r = np.inf
+    for t in range(MEB_ITER):
+        far = -1.0
+        fi = 0
+        for q in range(m):
+            i = idx[q]
+            dd = np.sqrt(((C[i] - c) ** 2).sum()) + R[i]
+            if dd > far:
+                far = dd
+                fi = i
+        if far < best_r:
+            best_r = far
+            best_c[:] = c
+        v = C[fi] - c
+        nv = np.sqrt((v ** 2).sum())
+        if nv > 0:
+            q_far = C[fi] + R[fi] * v / nv
+        else:
+            q_far = C[fi].copy()
+            q_far[0] += R[fi]
+        c = c + (q_far - c) / (t + 2.0)
+    # exact radius for the best centre seen (enclosure holds by construction)
+    r = 0.0
+    for q in range(m):
+        i = idx[q]
+        r = max(r, np.sqrt(((C[i] - best_c) ** 2).sum()) + R[i])
+    return best_c, r * (1.0 + 1e-12)
+
+
+@njit(cache=True)
+def _split(C, vol, seg, B, key, lab):
+    """Labels (0..k-1) of the spheres ``seg`` of one node: its children's groups."""
+    cnt = seg.shape[0]
+    k = min(B, cnt)
+    if cnt <= B:
+        for i in range(cnt):
+            lab[i] = i
+        return
+    X = np.empty((cnt, 3))
+    wv = np.empty(cnt)
+    for i in range(cnt):
+        X[i] = C[seg[i]]
+        wv[i] = vol[seg[i]]
+    if cnt > BNG_SAMPLE:
+        # prototypes from a deterministic stride subsample; every sphere is then assigned
+        stride = cnt // BNG_SAMPLE
+        ns = cnt // stride
+        Xs = np.empty((ns, 3))
+        ws = np.empty(ns)
+        for q in range(ns):
+            Xs[q] = X[q * stride]
+            ws[q] = wv[q * stride]
+        W = _bng(Xs, ws, k, BNG_MAX_ITER, BNG_TOL, key)
+    else:
+        W = _bng(X, wv, k, BNG_MAX_ITER, BNG_TOL, key)
+    _assign(X, W, lab)
+    seen = np.zeros(k, np.bool_)
+    for i in range(cnt):
+        seen[lab[i]] = True
+    if seen.sum() < 2:
+        # all centres coincide with one prototype (degenerate): split along the longest axis
+        ext = np.empty(3)
+        for d in range(3):
+            ext[d] = X[:, d].max() - X[:, d].min()
+        ax = np.argmax(ext)
+        o = np.argsort(X[:, ax], kind="mergesort")
+        for q in range(cnt):
+            lab[o[q]] = (q * k) // cnt
+
+
+@njit(cache=True, parallel=True)
+def _split_frontier(C, vol, perm, frontier, leaf_start, leaf_end, B, seed, lab):
+    for t in prange(frontier.shape[0]):
+        nd = frontier[t]
+        a = leaf_start[nd]
+        b = leaf_end[nd]
+        key = (np.uint64(seed) << np.uint64(32)) ^ np.uint64(nd)
+        _split(C, vol, perm[a:b], B, key, lab[a:b])
+
+
+@njit(cache=True, parallel=True)
+def _wrap_level(C, R, perm, lo_node, hi_node, child_start, child_count, leaf_start, leaf_end, centers, radii):
+    for nd in prange(lo_node, hi_node):
+        a = leaf_start[nd]
+        b = leaf_end[nd]
+        if b - a == 1:
+            centers[nd] = C[perm[a]]
+            radii[nd] = R[perm[a]]
+            continue
+        # start from the ball around the children's (already enclosing) spheres, refine on the leaves
+        kids = np.arange(child_start[nd], child_start[nd] + child_count[nd])
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for q in kids:
+            for d in range(3):
+                lo[d] = min(lo[d], centers[q, d] - radii[q])
+                hi[d] = max(hi[d], centers[q, d] + radii[q])
+        c0, _ = _enclosing(centers, radii, kids, 0.5 * (lo + hi))
+        c, r = _enclosing(C, R, perm[a:b], c0)
+        centers[nd] = c
+        radii[nd] = r
+
+
+@njit(cache=True)
+def build_hierarchy(C, R, B, seed):
+    """Top-down BNG hierarchy over leaf spheres ``(C, R)`` with branching factor ``B``.
+
+    Nodes of one depth are split in parallel (labels only); children are then numbered
+    sequentially, so the tree is the same for any number of threads.
+    Returns the node arrays and the leaf permutation (``leaf_order``): leaf ``i`` of the
+    tree is input sphere ``leaf_order[i]``.
+    """
+    n = R.shape[0]
+    m_max = 2 * n + 1
+    leaf_start = np.zeros(m_max, np.int64)
+    leaf_end = np.zeros(m_max, np.int64)
+    child_start = np.full(m_max, -1, np.int64)
+    child_count = np.zeros(m_max, np.int64)
+    parent = np.full(m_max, -1, np.int64)
+    depth = np.zeros(m_max, np.int64)
+    perm = np.arange(n)
+    vol = R ** 3
+    lab = np.empty(n, np.int64)
+    leaf_start[0] = 0
+    leaf_end[0] = n
+    m = 1
+    level_lo = 0
+    level_hi = 1
+    bounds = [0]
+    while level_lo < level_hi:
+        cand = np.arange(level_lo, level_hi)
+        frontier = cand[(leaf_end[cand] - leaf_start[cand]) > 1]
+        _split_frontier(C, vol, perm, frontier, leaf_start, leaf_end, B, seed, lab)
+        for nd in frontier:
+            a = leaf_start[nd]
+            b = leaf_end[nd]
+            seg = perm[a:b].copy()
+            lseg = lab[a:b]
+            k = lseg.max() + 1
+            cs = m
+            pos = a
+            for j in range(k):
+                first = pos
+                for i in range(b - a):
+                    if lseg[i] == j:
+                        perm[pos] = seg[i]
+                        pos += 1
+                if pos > first:
+                    leaf_start[m] = first
+                    leaf_end[m] = pos
+                    parent[m] = nd
+                    depth[m] = depth[nd] + 1
+                    m += 1
+            child_start[nd] = cs
+            child_count[nd] = m - cs
+        bounds.append(level_hi)
+        level_lo = level_hi
+        level_hi = m
+    centers = np.empty((m, 3))
+    radii = np.empty(m)
+    # bottom-up, one depth at a time (BFS numbering: each depth is a contiguous range)
+    for q in range(len(bounds) - 1, 0, -1):
+        _wrap_level(C, R, perm, bounds[q - 1], bounds[q], child_start, child_count, leaf_start, leaf_end, centers, radii)
+    return (
+        centers, radii, child_start[:m].copy(), child_count[:m].copy(), parent[:m].copy(),
+        depth[:m].copy(), leaf_start[:m].copy(), leaf_end[:m].copy(), perm,
+    )

@@ -1,0 +1,129 @@
+"""Stage 2: voxelize. Candidate sphere centres on nested lattices with their surface distance.
+
+Level 0 is a uniform lattice over the whole bounding box; level ``l`` has spacing
+``h0 / 2**l`` and is generated only in a narrow band around the surface regions whose
+gap to the spheres is still too large (adaptive refinement: small ε without a billion
+voxels). Lattices nest (a level-l point is a level-(l+1) point), all share one origin.
+
+Inside/outside comes from parity ray casting through a triangle BVH with retries when a
+ray grazes an edge or vertex; the distance from the BVH closest point.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .bvh import BVH, RAY_DIRS, signed_distance
+
+KEY_BITS = 21  # lattice coordinates up to 2**21 per axis
+KEY_MASK = (1 << KEY_BITS) - 1
+
+
+@njit(cache=True)
+def encode(ijk):
+    """Pack non-negative lattice coordinates ``(n, 3)`` into sortable int64 keys."""
+    n = ijk.shape[0]
+    out = np.empty(n, np.int64)
+    for i in range(n):
+        out[i] = (ijk[i, 0] << (2 * KEY_BITS)) | (ijk[i, 1] << KEY_BITS) | ijk[i, 2]
+    return out
+
+
+@njit(cache=True)
+def _seed_keys(seeds, origin, h, dims):
+    n = seeds.shape[0]
+    out = np.empty(n, np.int64)
+    for s in range(n):
+        c0 = min(max(int(np.floor((seeds[s, 0] - origin[0]) / h + 0.5)), 0), dims[0] - 1)
+        c1 = min(max(int(np.floor((seeds[s, 1] - origin[1]) / h + 0.5)), 0), dims[1] - 1)
+        c2 = min(max(int(np.floor((seeds[s, 2] - origin[2]) / h + 0.5)), 0), dims[2] - 1)
+        out[s] = (c0 << (2 * KEY_BITS)) | (c1 << KEY_BITS) | c2
+    return out
+
+
+@njit(cache=True)
+def _dilate_axis(keys, axis, w, dims):
+    """Every key shifted by -w..w along one axis (clipped to the lattice), not deduplicated."""
+    shift = (2 - axis) * KEY_BITS
+    out = np.empty(keys.shape[0] * (2 * w + 1), np.int64)
+    m = 0
+    for i in range(keys.shape[0]):
+        c = (keys[i] >> shift) & KEY_MASK
+        base = keys[i] & ~(KEY_MASK << shift)
+        for o in range(max(0, c - w), min(dims[axis], c + w + 1)):
+            out[m] = base | (o << shift)
+            m += 1
+    return out[:m]
+
+
+@njit(cache=True)
+def decode(keys, origin, h):
+    n = keys.shape[0]
+    P = np.empty((n, 3))
+    for i in range(n):
+        k = keys[i]
+        P[i, 0] = origin[0] + h * ((k >> (2 * KEY_BITS)) & KEY_MASK)
+        P[i, 1] = origin[1] + h * ((k >> KEY_BITS) & KEY_MASK)
+        P[i, 2] = origin[2] + h * (k & KEY_MASK)
+    return P
+
+
+class Voxelizer:
+    """Nested lattices over a mesh's bounding box, with signed surface distances.
+
+    Parameters
+    ----------
+    vertices, faces : arrays of a validated closed mesh.
+    h0 : float
+        Spacing of the coarsest (level 0) lattice.
+    """
+
+    def __init__(self, vertices, faces, h0: float):
+        self.V = np.ascontiguousarray(vertices, dtype=np.float64)
+        self.F = np.ascontiguousarray(faces, dtype=np.int64)
+        self.bvh = BVH.of_triangles(self.V, self.F)
+        self.h0 = float(h0)
+        lo = self.V.min(axis=0)
+        hi = self.V.max(axis=0)
+        self.origin = lo - 0.5 * self.h0
+        self.points_evaluated = 0
+
+    def spacing(self, level: int) -> float:
+        return self.h0 / (1 << level)
+
+    def dims(self, level: int) -> np.ndarray:
+        hi = self.V.max(axis=0) + 0.5 * self.h0
+        d = np.floor((hi - self.origin) / self.spacing(level)).astype(np.int64) + 1
+        if (d >= (1 << KEY_BITS)).any():
+            raise ValueError(
+                f"lattice level {level} needs {d.max()} points per axis (limit {1 << KEY_BITS}): "
+                "max_error is too small for this mesh's size; check units"
+            )
+        return d
+
+    def signed_distance(self, P: np.ndarray) -> np.ndarray:
+        """Signed distance (positive inside) of points ``P (n, 3)`` to the surface."""
+        self.points_evaluated += len(P)
+        if len(P) == 0:
+            return np.empty(0)
+        return signed_distance(np.ascontiguousarray(P), self.V, self.F, *self.bvh.arrays, RAY_DIRS)
+
+    def level0(self):
+        """All level-0 lattice points inside the mesh and their surface distance."""
+        d = self.dims(0)
+        ii, jj, kk = np.meshgrid(np.arange(d[0]), np.arange(d[1]), np.arange(d[2]), indexing="ij")
+        P = self.origin + self.h0 * np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(np.float64)
+        D = self.signed_distance(P)
+        keep = D > 0
+        return P[keep], D[keep]
+
+    def band(self, level: int, seeds: np.ndarray, half_width: float):
+        """Level-``level`` lattice points within ``half_width`` (cube) of the seed points."""
+        h = self.spacing(level)
+        dims = self.dims(level)
+        w = int(np.ceil(half_width / h))
+        keys = np.unique(_seed_keys(np.ascontiguousarray(seeds, dtype=np.float64), self.origin, h, dims))
+        # separable cube dilation, deduplicated after each axis: memory ~ (2w+1) x the band
+        for axis in range(3):
+            keys = np.unique(_dilate_axis(keys, axis, w, dims))
+        return decode(keys, self.origin, h)
