@@ -193,19 +193,23 @@ def certify(V, F, C, R, target: float, min_size: float, want_seeds: bool = False
     return float(ub.max()), float(lb.max()), seeds
 
 
-def tight_bound(V, F, C, R, rel_tol: float = 0.05, bvh: BVH | None = None):
+def tight_bound(V, F, C, R, rel_tol: float = 0.05, bvh: BVH | None = None, known: float = np.inf):
     """The certified ε, refined until it is within ``rel_tol`` of its own lower bound.
 
-    Returns ``(eps, lower)``: ``lower <= true Hausdorff gap <= eps``.
+    ``known`` is a bound certified earlier for a subset of these spheres (still valid:
+    adding spheres only shrinks gaps); every certificate is an upper bound, so the
+    smallest one is returned. Returns ``(eps, lower)``: ``lower <= true gap <= eps``.
     """
     if bvh is None:
         bvh = BVH.of_spheres(C, R)
     scale = float(np.linalg.norm(V.max(0) - V.min(0)))
     ub, lb, _ = certify(V, F, C, R, target=np.inf, min_size=np.inf, bvh=bvh)
+    best = min(ub, known)
     for _ in range(6):
         target = max(lb * (1.0 + rel_tol), 1e-9 * scale)
         ub, lb2, _ = certify(V, F, C, R, target=target, min_size=target * rel_tol * 0.5, bvh=bvh)
         lb = max(lb, lb2)
-        if ub <= lb * (1.0 + rel_tol) + 1e-12 * scale:
+        best = min(best, ub)
+        if best <= lb * (1.0 + rel_tol) + 1e-12 * scale:
             break
-    return ub, lb
+    return best, lb

@@ -140,6 +140,7 @@ def build(
     C, R = greedy_pack(P, D.copy(), keys, vox.origin, h0, 0.5 * h0, max_leaves, SHRINK)
     t_pack += time.perf_counter() - tp
     levels = 0
+    certified = np.inf  # best bound so far (stays valid as spheres are added)
     for level in range(1, MAX_LEVELS + 1):
         if len(R) >= max_leaves:
             break
@@ -151,6 +152,7 @@ def build(
         else:
             ub, seeds = np.inf, m.vertices[m.faces].mean(axis=1)
         t_cert += time.perf_counter() - tc
+        certified = min(certified, ub)
         if ub <= target or len(seeds) == 0:
             break
         if h < 1e-7 * diag:
@@ -204,7 +206,7 @@ def build(
     # --- certified error bound --------------------------------------------------------------
     bar.stage("error bound")
     t = time.perf_counter()
-    eps, eps_lo = tight_bound(m.vertices, m.faces, leaf_centers, leaf_radii)
+    eps, eps_lo = tight_bound(m.vertices, m.faces, leaf_centers, leaf_radii, known=certified)
     timings["bound"] = time.perf_counter() - t + t_cert
     timings["total"] = time.perf_counter() - t0
     bar.step(f"eps {eps:.3g}")

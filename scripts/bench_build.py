@@ -1,0 +1,144 @@
+"""Build benchmark: time per stage, peak memory, leaves, ε, coverage vs max_error.
+
+Each build runs in a fresh subprocess (peak RSS is that process's own). In the same run,
+coal's OBBRSS BVH build of the same mesh is timed as a reference for preprocessing cost.
+Writes ``out/bench_build.json`` and ``out/bench_build.png`` (leaves vs ε, time vs ε).
+
+    python scripts/bench_build.py            # bundled models + ../shared/data when present
+    python scripts/bench_build.py --quick    # bundled molar + real jaw at coarse ε only
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = ROOT.parent / "shared" / "data"
+
+# (label, path, max_error values in mesh units)
+CASES = [
+    ("molar (bundled, m)", ROOT / "models" / "molar.stl", [2e-4, 1e-4, 5e-5]),
+    ("mandible (real, m)", SHARED / "jaw" / "mandible.obj", [1e-3, 4e-4, 2e-4, 1e-4]),
+    ("maxilla (real, m)", SHARED / "jaw" / "maxilla.obj", [1e-3, 4e-4, 2e-4]),
+    ("bunny (mm)", SHARED / "stanford" / "bunny.obj", [2.0, 1.0, 0.5]),
+    ("dragon (unitless)", SHARED / "stanford" / "dragon.obj", [0.01, 0.005]),
+]
+QUICK = {"molar (bundled, m)": [2e-4], "mandible (real, m)": [1e-3, 4e-4]}
+
+
+def _child(path: str, max_error: float) -> None:
+    import mjist
+
+    t = time.perf_counter()
+    tree = mjist.build(path, max_error=max_error)
+    wall = time.perf_counter() - t
+    s = tree.stats()
+    s["wall"] = wall
+    s["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print("RESULT " + json.dumps(s))
+
+
+def _coal_bvh_time(path: str) -> float:
+    import coal
+    import numpy as np
+
+    import mjist
+
+    m = mjist.load_mesh(path)
+    t = time.perf_counter()
+    model = coal.BVHModelOBBRSS()
+    model.beginModel(len(m.faces), len(m.vertices))
+    model.addVertices(m.vertices)
+    model.addTriangles(m.faces.astype(np.int64))
+    model.endModel()
+    return time.perf_counter() - t
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", default=str(ROOT / "out"))
+    ap.add_argument("--timeout", type=float, default=600.0)
+    args = ap.parse_args()
+    os.makedirs(args.out, exist_ok=True)
+    # warm numba's cache once so no build below pays compile time
+    subprocess.run([sys.executable, "-c", "import mjist,trimesh; mjist.build(trimesh.creation.icosphere(3), max_error=0.05)"], check=True)
+    rows = []
+    for label, path, errs in CASES:
+        if args.quick:
+            errs = QUICK.get(label, [])
+        if not errs or not path.exists():
+            continue
+        coal_t = _coal_bvh_time(str(path))
+        for e in errs:
+            cmd = [sys.executable, __file__, "--child", str(path), repr(e)]
+            try:
+                p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+            except subprocess.TimeoutExpired:
+                rows.append({"mesh": label, "max_error": e, "error": f"timeout {args.timeout}s"})
+                print(f"{label:22s} ε≤{e:<8g} timeout")
+                continue
+            line = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
+            if not line:
+                rows.append({"mesh": label, "max_error": e, "error": p.stderr[-2000:]})
+                print(f"{label:22s} ε≤{e:<8g} failed: {p.stderr[-300:]}")
+                continue
+            s = json.loads(line[0][7:])
+            s.update(mesh=label, path=str(path), max_error=e, coal_bvh_build_s=coal_t)
+            rows.append(s)
+            print(
+                f"{label:22s} ε≤{e:<8g} ε={s['error_bound']:.3g} leaves={s['leaves']:>8d} depth={s['depth']:>2d} "
+                f"coverage={100 * s['coverage']:.1f}% wall={s['wall']:.1f}s peak={s['peak_rss_mb']:.0f}MB "
+                f"(coal BVH {coal_t * 1e3:.0f} ms)",
+                flush=True,
+            )
+    info = {
+        "machine": platform.platform(),
+        "cpus": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "command": " ".join(["python", "scripts/bench_build.py"] + (["--quick"] if args.quick else [])),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+    }
+    with open(os.path.join(args.out, "bench_build.json"), "w") as fh:
+        json.dump({"info": info, "rows": rows}, fh, indent=2)
+    _plot(rows, os.path.join(args.out, "bench_build.png"))
+    print(f"wrote {args.out}/bench_build.json and bench_build.png")
+    return 0
+
+
+def _plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in rows if "error_bound" in r]
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.5))
+    for label in dict.fromkeys(r["mesh"] for r in ok):
+        rr = sorted((r for r in ok if r["mesh"] == label), key=lambda r: r["error_bound"])
+        eps = [r["error_bound"] for r in rr]
+        ax[0].loglog(eps, [r["leaves"] for r in rr], "o-", label=label)
+        ax[1].loglog(eps, [r["wall"] for r in rr], "o-", label=label)
+        ax[2].semilogx(eps, [100 * r["coverage"] for r in rr], "o-", label=label)
+    ax[0].set(xlabel="certified ε (mesh units)", ylabel="leaves", title="leaves vs ε")
+    ax[1].set(xlabel="certified ε (mesh units)", ylabel="build time [s]", title="build time vs ε")
+    ax[2].set(xlabel="certified ε (mesh units)", ylabel="coverage [%]", title="volume coverage vs ε")
+    for a in ax:
+        a.grid(True, which="both", alpha=0.3)
+    ax[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--child":
+        _child(sys.argv[2], float(sys.argv[3]))
+        sys.exit(0)
+    sys.exit(main())

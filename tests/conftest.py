@@ -1,0 +1,26 @@
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = ROOT.parent / "shared" / "data"
+
+
+def shared_path(*parts) -> Path:
+    """A file of ../shared/data, or skip the test when the folder is absent (fresh clones)."""
+    p = SHARED.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"{p} not present (shared data is only beside the project on dev/CI machines)")
+    return p
+
+
+def gaps_to_union(points, centers, radii, chunk=2048):
+    """Exact distance (clamped at 0) from each point to the union of spheres, brute force."""
+    out = np.empty(len(points))
+    for a in range(0, len(points), chunk):
+        p = points[a:a + chunk]
+        d = np.sqrt(((p[:, None, :] - centers[None, :, :]) ** 2).sum(-1)) - radii[None, :]
+        out[a:a + chunk] = np.maximum(d.min(axis=1), 0.0)
+    return out

@@ -1,0 +1,238 @@
+"""The builder on analytic shapes: certified ε, inner spheres, wrapped hierarchy, determinism, files."""
+import json
+import zipfile
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+import mjist
+from mjist import TreeFileError, load_tree
+from mjist.bvh import BVH, RAY_DIRS, signed_distance
+
+from conftest import gaps_to_union, shared_path
+
+
+def sphere():
+    return trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+
+
+def box():
+    return trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+
+
+def torus():
+    return trimesh.creation.torus(major_radius=1.0, minor_radius=0.35, major_sections=48, minor_sections=24)
+
+
+def two_shells():
+    a = trimesh.creation.icosphere(subdivisions=3, radius=0.6)
+    b = trimesh.creation.box(extents=(0.8, 0.8, 0.8))
+    b.apply_translation([2.0, 0.0, 0.0])
+    return trimesh.util.concatenate([a, b])
+
+
+SHAPES = {
+    "sphere": (sphere, 0.06),
+    "box": (box, 0.08),
+    "torus": (torus, 0.04),
+    "two_shells": (two_shells, 0.05),
+}
+_cache = {}
+
+
+def built(name):
+    if name not in _cache:
+        make, err = SHAPES[name]
+        mesh = make()
+        _cache[name] = (mesh, mjist.build(mesh, max_error=err))
+    return _cache[name]
+
+
+@pytest.mark.parametrize("name", list(SHAPES))
+def test_error_bound_holds_on_random_surface_points(name):
+    mesh, tree = built(name)
+    assert 0 < tree.error_lower <= tree.error_bound <= SHAPES[name][1]
+    pts, _ = trimesh.sample.sample_surface(mesh, 4000, seed=1)
+    pts = np.vstack([pts, mesh.vertices])
+    gap = gaps_to_union(pts, tree.leaf_centers, tree.leaf_radii)
+    assert gap.max() <= tree.error_bound + 1e-12
+    # the lower bound is a real gap somewhere: the certificate is not wildly loose
+    assert tree.error_bound <= 1.25 * tree.error_lower
+
+
+@pytest.mark.parametrize("name", list(SHAPES))
+def test_leaf_spheres_are_inside_and_disjoint(name):
+    mesh, tree = built(name)
+    C, R = tree.leaf_centers, tree.leaf_radii
+    scale = float(np.linalg.norm(mesh.extents))
+    # independent check (trimesh's own closest point) on a subset, positive inside
+    idx = np.random.default_rng(0).choice(len(R), size=min(400, len(R)), replace=False)
+    sd = trimesh.proximity.signed_distance(mesh, C[idx])
+    assert (sd >= R[idx] - 1e-9 * scale).all()
+    # our kernels on all of them
+    b = BVH.of_triangles(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64))
+    sd_all = signed_distance(np.ascontiguousarray(C), np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64), *b.arrays, RAY_DIRS)
+    assert (sd_all >= R - 1e-9 * scale).all()
+    # no two leaves overlap
+    pairs = cKDTree(C).query_pairs(2 * R.max(), output_type="ndarray")
+    if len(pairs):
+        d = np.linalg.norm(C[pairs[:, 0]] - C[pairs[:, 1]], axis=1)
+        assert (d >= R[pairs[:, 0]] + R[pairs[:, 1]] - 1e-9 * scale).all()
+
+
+@pytest.mark.parametrize("name", list(SHAPES))
+def test_hierarchy_is_wrapped_and_consistent(name):
+    _, tree = built(name)
+    n = tree.num_leaves
+    cs, cc, ls, le = tree.child_start, tree.child_count, tree.leaf_start, tree.leaf_end
+    assert ls[0] == 0 and le[0] == n and tree.parent[0] == -1
+    inner = np.flatnonzero(cc > 0)
+    assert (cc[inner] >= 2).all() and (cc[inner] <= tree.params["branching"]).all()
+    # children partition the parent's leaf range, in order
+    for i in inner[:: max(1, len(inner) // 2000)]:
+        kids = np.arange(cs[i], cs[i] + cc[i])
+        assert ls[kids[0]] == ls[i] and le[kids[-1]] == le[i]
+        assert (le[kids[:-1]] == ls[kids[1:]]).all()
+        assert (tree.parent[kids] == i).all() and (tree.depth_of[kids] == tree.depth_of[i] + 1).all()
+    leaves = np.flatnonzero(cc == 0)
+    assert len(leaves) == n and np.array_equal(np.sort(ls[leaves]), np.arange(n))
+    assert np.array_equal(tree.leaf_node[ls[leaves]], leaves)
+    # every node sphere encloses every leaf sphere below it (walk each leaf up to the root)
+    anc = tree.leaf_node.copy()
+    Cl, Rl = tree.leaf_centers, tree.leaf_radii
+    while True:
+        d = np.linalg.norm(tree.centers[anc] - Cl, axis=1) + Rl
+        assert (d <= tree.radii[anc] * (1 + 1e-9) + 1e-15).all()
+        up = tree.parent[anc]
+        if (up < 0).all():
+            break
+        anc = np.where(up < 0, anc, up)
+    assert tree.depth == int(tree.depth_of.max())
+
+
+@pytest.mark.parametrize(
+    "name,volume",
+    [("sphere", 4 / 3 * np.pi), ("box", 6.0), ("torus", 2 * np.pi**2 * 1.0 * 0.35**2)],
+)
+def test_coverage_matches_analytic_volume(name, volume):
+    mesh, tree = built(name)
+    leaf_volume = 4 / 3 * np.pi * np.sum(tree.leaf_radii**3)
+    # the polygonal mesh is within 2 % of the analytic solid
+    assert tree.mesh_volume == pytest.approx(volume, rel=0.03)
+    assert tree.coverage == pytest.approx(leaf_volume / tree.mesh_volume, rel=1e-12)
+    assert leaf_volume <= volume * 1.0 + 1e-9
+    assert 0.6 < tree.coverage <= 1.0
+
+
+def test_determinism_and_seed():
+    mesh = torus()
+    a = mjist.build(mesh, max_error=0.06, seed=3)
+    b = mjist.build(mesh, max_error=0.06, seed=3)
+    for name in ("centers", "radii", "child_start", "leaf_centers", "leaf_radii", "leaf_node"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert a.error_bound == b.error_bound
+    c = mjist.build(mesh, max_error=0.06, seed=4)
+    # same packing, different clustering
+    assert np.array_equal(np.sort(a.leaf_radii), np.sort(c.leaf_radii))
+
+
+def test_leaves_limit_stops_packing_largest_first():
+    mesh = sphere()
+    t = mjist.build(mesh, leaves=50)
+    assert t.num_leaves == 50
+    full = built("sphere")[1]
+    assert t.error_bound > full.error_bound
+    assert t.leaf_radii.max() == pytest.approx(full.leaf_radii.max())
+
+
+def test_branching_factor():
+    t = mjist.build(box(), max_error=0.1, branching=8)
+    assert t.child_count.max() <= 8 and t.child_count.max() > 4
+
+
+def test_save_load_round_trip(tmp_path):
+    _, tree = built("torus")
+    p = tree.save(tmp_path / "t.npz")
+    t2 = load_tree(p, expect_hash=tree.mesh_hash)
+    for name in ("centers", "radii", "child_start", "child_count", "parent", "depth_of", "leaf_start", "leaf_end", "leaf_centers", "leaf_radii", "leaf_node"):
+        assert np.array_equal(getattr(tree, name), getattr(t2, name)), name
+    assert t2.error_bound == tree.error_bound and t2.coverage == pytest.approx(tree.coverage)
+    assert t2.stats()["leaves"] == tree.num_leaves
+
+
+def test_load_errors(tmp_path):
+    _, tree = built("sphere")
+    p = str(tree.save(tmp_path / "t.npz"))
+    with pytest.raises(TreeFileError, match="another mesh"):
+        load_tree(p, expect_hash="0" * 64)
+    with pytest.raises(TreeFileError, match="does not exist"):
+        load_tree(tmp_path / "missing.npz")
+    # corrupt: truncated file
+    raw = open(p, "rb").read()
+    bad = tmp_path / "trunc.npz"
+    bad.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(TreeFileError, match="corrupt"):
+        load_tree(bad)
+    # garbage
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"\x00" * 1000)
+    with pytest.raises(TreeFileError):
+        load_tree(junk)
+    # another format version
+    with np.load(p) as z:
+        data = {k: z[k] for k in z.files}
+    meta = json.loads(str(data["meta"]))
+    meta["format_version"] = 99
+    data["meta"] = np.array(json.dumps(meta))
+    v99 = tmp_path / "v99.npz"
+    np.savez(v99, **data)
+    with pytest.raises(TreeFileError, match="format version 99"):
+        load_tree(v99)
+    # inconsistent arrays
+    data["meta"] = np.array(json.dumps({**meta, "format_version": mjist.FORMAT_VERSION}))
+    data["leaf_radii"] = -data["leaf_radii"]
+    neg = tmp_path / "neg.npz"
+    np.savez(neg, **data)
+    with pytest.raises(TreeFileError, match="inconsistent"):
+        load_tree(neg)
+
+
+def test_cli_build_and_info(tmp_path, capsys):
+    from mjist.cli import main
+
+    mesh = tmp_path / "box.stl"
+    box().export(mesh)
+    out = tmp_path / "box.npz"
+    assert main(["build", str(mesh), "-o", str(out), "--max-error", "0.1", "-q", "--json", str(tmp_path / "r.json")]) == 0
+    text = capsys.readouterr().out
+    assert "error bound" in text and "coverage" in text and str(out) in text
+    assert load_tree(out).num_leaves > 0
+    assert json.load(open(tmp_path / "r.json"))["leaves"] > 0
+    assert main(["info", str(out)]) == 0
+    bad = tmp_path / "open.stl"
+    b = box()
+    b.update_faces(np.arange(1, 12))
+    b.export(bad)
+    assert main(["build", str(bad), "-q", "-o", str(tmp_path / "x.npz")]) == 1
+    assert "not closed" in capsys.readouterr().err
+
+
+@pytest.mark.shared
+def test_real_mandible_coarse():
+    path = shared_path("jaw", "mandible.obj")
+    tree = mjist.build(path, max_error=1e-3)  # metres: 1 mm
+    assert tree.error_bound <= 1e-3 and tree.coverage > 0.4
+    mesh = mjist.load_mesh(path).trimesh()
+    pts, _ = trimesh.sample.sample_surface(mesh, 3000, seed=2)
+    assert gaps_to_union(pts, tree.leaf_centers, tree.leaf_radii).max() <= tree.error_bound + 1e-15
+
+
+@pytest.mark.shared
+def test_real_maxilla_three_shells():
+    path = shared_path("jaw", "maxilla.obj")
+    m = mjist.load_mesh(path)
+    assert m.shells == 3
+    tree = mjist.build(m, max_error=1e-3)
+    assert tree.error_bound <= 1e-3
