@@ -109,8 +109,31 @@ def main() -> int:
     with open(os.path.join(args.out, "bench_build.json"), "w") as fh:
         json.dump({"info": info, "rows": rows}, fh, indent=2)
     _plot(rows, os.path.join(args.out, "bench_build.png"))
-    print(f"wrote {args.out}/bench_build.json and bench_build.png")
+    with open(os.path.join(args.out, "bench_build.md"), "w") as fh:
+        fh.write(markdown(info, rows))
+    print(f"wrote {args.out}/bench_build.json, bench_build.png and bench_build.md")
     return 0
+
+
+def markdown(info, rows) -> str:
+    """The results as a Markdown table (pasted into BENCHMARKS.md)."""
+    out = [
+        f"`{info['command']}` on {info['machine']}, {info['cpus']} CPUs, Python {info['python']}, {info['date']}.",
+        "",
+        "| mesh | max_error | certified ε | ε lower | leaves | nodes | depth | coverage | voxelize s | pack s | hierarchy s | bound s | total s | peak MB | coal BVH ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "error_bound" not in r:
+            out.append(f"| {r['mesh']} | {r['max_error']:g} | {r['error'].splitlines()[-1][:60] if r['error'] else 'failed'} |" + " |" * 12)
+            continue
+        t = r["timings"]
+        out.append(
+            f"| {r['mesh']} | {r['max_error']:g} | {r['error_bound']:.3g} | {r['error_lower']:.3g} | {r['leaves']} | {r['nodes']} | "
+            f"{r['depth']} | {100 * r['coverage']:.1f} % | {t['voxelize']:.1f} | {t['pack']:.1f} | {t['hierarchy']:.1f} | "
+            f"{t['bound']:.1f} | {r['wall']:.1f} | {r['peak_rss_mb']:.0f} | {1e3 * r['coal_bvh_build_s']:.0f} |"
+        )
+    return "\n".join(out) + "\n"
 
 
 def _plot(rows, path):
