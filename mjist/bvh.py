@@ -336,22 +336,6 @@ def signed_distance(P, V, F, lo, hi, left, right, start, count, order, dirs):
     return out
 
 
-@njit(cache=True, parallel=True)
-def closest_points(P, V, F, lo, hi, left, right, start, count, order):
-    """Unsigned distance and closest surface point for each row of ``P``."""
-    n = P.shape[0]
-    dist = np.empty(n)
-    q = np.empty((n, 3))
-    for i in prange(n):
-        stack = np.empty(STACK, np.int64)
-        d2, x, y, z = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
-        dist[i] = np.sqrt(d2)
-        q[i, 0] = x
-        q[i, 1] = y
-        q[i, 2] = z
-    return dist, q
-
-
 @njit(cache=True)
 def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
     """Distance from ``p`` to the union of spheres, clamped at 0, searched below ``bound``.

@@ -67,10 +67,6 @@ class InnerSphereTree:
         """Leaf sphere volume over mesh volume (leaves do not overlap, so this is the union's)."""
         return float((4.0 / 3.0) * np.pi * np.sum(self.leaf_radii**3) / self.mesh_volume)
 
-    @property
-    def epsilon(self) -> float:
-        return self.error_bound
-
     def stats(self) -> dict:
         """Summary figures: leaves, nodes, depth, ε and its lower bound, coverage, timings."""
         return {
