@@ -3,14 +3,24 @@
 Build: ``tree = mjist.build("jaw.stl", max_error=5e-5)`` fills a closed mesh with
 non-overlapping inner spheres, wraps them in a Batch-Neural-Gas hierarchy and certifies
 the error bound ε (every surface point lies within ε of a sphere).
+
+Query: ``q = mjist.Query(tree_a, tree_b)``; ``q.distance(pose_a, pose_b)``,
+``q.contacts(...)``, ``q.penetration_volume(...)`` with 4x4 poses, each answer with its
+error bound (true distance ∈ [distance - error_bound, distance]).
 """
-from .build import build
+from .build import build, sphere_tree
 from .errors import MeshError, TreeFileError
 from .mesh import Mesh, load_mesh
+from .query import ContactResult, DistanceResult, PenetrationResult, Query
 from .tree import FORMAT_VERSION, InnerSphereTree, load_tree
 
 __all__ = [
     "build",
+    "sphere_tree",
+    "Query",
+    "DistanceResult",
+    "ContactResult",
+    "PenetrationResult",
     "load_tree",
     "load_mesh",
     "Mesh",

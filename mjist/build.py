@@ -1,6 +1,7 @@
 """The build pipeline: mesh → voxelize → packing → hierarchy → certified tree."""
 from __future__ import annotations
 
+import hashlib
 import time
 import warnings
 
@@ -191,22 +192,14 @@ def build(
     # --- hierarchy --------------------------------------------------------------------------
     bar.stage("hierarchy (batch neural gas)")
     t = time.perf_counter()
-    # determinism: order leaves by (radius desc, then coordinates) before clustering
-    order = np.lexsort((C[:, 2], C[:, 1], C[:, 0], -R))
-    C, R = C[order], R[order]
-    (centers, radii, cstart, ccount, parent, depth, lstart, lend, perm) = build_hierarchy(C, R, int(branching), int(seed))
-    leaf_centers = np.ascontiguousarray(C[perm])
-    leaf_radii = np.ascontiguousarray(R[perm])
-    leaf_node = np.empty(len(R), np.int64)
-    is_leaf = ccount == 0
-    leaf_node[lstart[is_leaf]] = np.flatnonzero(is_leaf)
+    arrays = _assemble(C, R, int(branching), int(seed))
     timings["hierarchy"] = time.perf_counter() - t
-    bar.step(f"{len(radii)} nodes, depth {int(depth.max())}")
+    bar.step(f"{len(arrays['radii'])} nodes, depth {int(arrays['depth_of'].max())}")
 
     # --- certified error bound --------------------------------------------------------------
     bar.stage("error bound")
     t = time.perf_counter()
-    eps, eps_lo = tight_bound(m.vertices, m.faces, leaf_centers, leaf_radii, known=certified)
+    eps, eps_lo = tight_bound(m.vertices, m.faces, arrays["leaf_centers"], arrays["leaf_radii"], known=certified)
     timings["bound"] = time.perf_counter() - t + t_cert
     timings["total"] = time.perf_counter() - t0
     bar.step(f"eps {eps:.3g}")
@@ -219,17 +212,7 @@ def build(
             stacklevel=2,
         )
     return InnerSphereTree(
-        centers=centers,
-        radii=radii,
-        child_start=cstart,
-        child_count=ccount,
-        parent=parent,
-        depth_of=depth,
-        leaf_start=lstart,
-        leaf_end=lend,
-        leaf_centers=leaf_centers,
-        leaf_radii=leaf_radii,
-        leaf_node=leaf_node,
+        **arrays,
         error_bound=float(eps),
         error_lower=float(eps_lo),
         mesh_volume=m.volume,
@@ -246,4 +229,53 @@ def build(
             "points_evaluated": int(vox.points_evaluated),
             "repairs": list(m.repairs),
         },
+    )
+
+
+def _assemble(C, R, branching, seed):
+    """Hierarchy arrays (``InnerSphereTree`` fields) over leaf spheres ``C, R``."""
+    # determinism: order leaves by (radius desc, then coordinates) before clustering
+    order = np.lexsort((C[:, 2], C[:, 1], C[:, 0], -R))
+    C, R = np.ascontiguousarray(C[order]), np.ascontiguousarray(R[order])
+    (centers, radii, cstart, ccount, parent, depth, lstart, lend, perm) = build_hierarchy(C, R, branching, seed)
+    leaf_node = np.empty(len(R), np.int64)
+    is_leaf = ccount == 0
+    leaf_node[lstart[is_leaf]] = np.flatnonzero(is_leaf)
+    return {
+        "centers": centers, "radii": radii, "child_start": cstart, "child_count": ccount,
+        "parent": parent, "depth_of": depth, "leaf_start": lstart, "leaf_end": lend,
+        "leaf_centers": np.ascontiguousarray(C[perm]), "leaf_radii": np.ascontiguousarray(R[perm]),
+        "leaf_node": leaf_node,
+    }
+
+
+def sphere_tree(centers, radii, *, branching: int = 4, seed: int = 0) -> InnerSphereTree:
+    """An Inner Sphere Tree over given spheres: the object *is* their union (ε = 0).
+
+    For tools and probes made of spheres (a haptic probe tip is one sphere) and for tests.
+    Spheres should not overlap each other, or ``penetration_volume`` counts the overlap twice.
+
+    Parameters
+    ----------
+    centers : array (n, 3)
+    radii : array (n,)
+        Positive radii.
+    """
+    C = np.array(centers, dtype=np.float64, ndmin=2)
+    R = np.array(radii, dtype=np.float64, ndmin=1)
+    if C.ndim != 2 or C.shape[1] != 3 or R.shape != (C.shape[0],) or len(R) == 0:
+        raise ValueError(f"sphere_tree needs centers (n, 3) and radii (n,) with n >= 1, got {C.shape} and {R.shape}")
+    if not (np.isfinite(C).all() and np.isfinite(R).all() and (R > 0).all()):
+        raise ValueError("sphere_tree needs finite centers and finite positive radii")
+    if not 2 <= int(branching) <= 16:
+        raise ValueError(f"branching={branching} must be between 2 and 16")
+    arrays = _assemble(C, R, int(branching), int(seed))
+    h = hashlib.sha256(C.tobytes() + R.tobytes()).hexdigest()
+    return InnerSphereTree(
+        **arrays,
+        error_bound=0.0,
+        error_lower=0.0,
+        mesh_volume=float(4.0 / 3.0 * np.pi * np.sum(R**3)),
+        mesh_hash=h,
+        params={"branching": int(branching), "seed": int(seed), "spheres": True},
     )
