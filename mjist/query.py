@@ -41,32 +41,32 @@ def _world_vec(P, x, y, z, out, o):
 
 
 @njit(cache=True)
-def _distance_kernel(Sa, Ia, Sb, Ib, Pa, Pb, method, skip, tol, eps, xf, ref, st, sv, pair, geom, out):
+def _distance_kernel(Na, Nb, Pa, Pb, method, skip, tol, eps, xf, ref, st, sv, pair, geom, out):
     """out: distance, lower bound of the IST distance, point_a (3), point_b (3), visits."""
     if not tv.relative_pose(Pa, Pb, xf):
         return tv.BAD_POSE
     code = tv.OK
     have_pair = pair[0] >= 0
     if skip and have_pair and ref[_REF_OK] > 0.0 and ref[_REF_D] > eps:
-        m = tv.motion_bound(ref[0:12], xf, Sb[0, 0:3], Sb[0, 3])
+        m = tv.motion_bound(ref[0:12], xf, Nb[0, 0:3], Nb[0, 3])
         if m < ref[_REF_D] - eps:
             # no mesh contact is possible: the IST distance moved by at most m
-            v = tv.leaf_geometry(Sa, Sb, xf, pair[0], pair[1], geom)
+            v = tv.leaf_geometry(Na, Nb, xf, pair[0], pair[1], geom)
             out[0] = max(v, 0.0)
             out[1] = ref[_REF_D] - m
             out[8] = 0.0
             code = tv.SKIPPED
     if code != tv.SKIPPED:
         if method == 1 and have_pair:
-            best, code, visits = tv.min_distance_backtrack(Sa, Ia, Sb, Ib, xf, st, sv, tol, pair, 0.0)
+            best, code, visits = tv.min_distance_backtrack(Na, Nb, xf, st, sv, tol, pair, 0.0)
         else:
-            best, code, visits = tv.min_distance(Sa, Ia, Sb, Ib, xf, st, sv, np.inf, tol, pair, 0.0)
+            best, code, visits = tv.min_distance(Na, Nb, xf, st, sv, np.inf, tol, pair, 0.0)
         if code != tv.OK:
             pair[0] = -1
             pair[1] = -1
             ref[_REF_OK] = 0.0
             return code
-        tv.leaf_geometry(Sa, Sb, xf, pair[0], pair[1], geom)
+        tv.leaf_geometry(Na, Nb, xf, pair[0], pair[1], geom)
         out[0] = max(best, 0.0)
         out[1] = max(best - tol, 0.0)  # the traversal's own tolerance
         out[8] = visits
@@ -81,23 +81,23 @@ def _distance_kernel(Sa, Ia, Sb, Ib, Pa, Pb, method, skip, tol, eps, xf, ref, st
 
 @njit(cache=True)
 def _contacts_kernel(
-    Sa, Ia, Sb, Ib, Pa, Pb, method, split_depth, margin, k_max,
+    Na, Nb, Pa, Pb, method, split_depth, margin, k_max,
     xf, st, sv, pair, prev, n_prev, cand, cval, chosen, geom, dmin, pos, nrm, dep, ids, info,
 ):
     """Contacts into ``pos, nrm, dep, ids`` (world frame); ``info``: count, candidates, visits."""
     if not tv.relative_pose(Pa, Pb, xf):
         return tv.BAD_POSE
     if method == 2:
-        n, code, visits = tv.multipoint(Sa, Ia, Sb, Ib, xf, st, sv, split_depth, margin, prev, n_prev[0], cand, cval, pair)
+        n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev[0], cand, cval, pair)
     else:
         if method == 1 and pair[0] >= 0:
-            best, code, visits = tv.min_distance_backtrack(Sa, Ia, Sb, Ib, xf, st, sv, 0.0, pair, -np.inf)
+            best, code, visits = tv.min_distance_backtrack(Na, Nb, xf, st, sv, 0.0, pair, -np.inf)
         else:
-            best, code, visits = tv.min_distance(Sa, Ia, Sb, Ib, xf, st, sv, np.inf, 0.0, pair, -np.inf)
+            best, code, visits = tv.min_distance(Na, Nb, xf, st, sv, np.inf, 0.0, pair, -np.inf)
         n = 0
         if code == tv.OK and best < margin:
-            cand[0, 0] = tv.ancestor_at(Ia, pair[0], split_depth)
-            cand[0, 1] = tv.ancestor_at(Ib, pair[1], split_depth)
+            cand[0, 0] = tv.ancestor_at(Na, pair[0], split_depth)
+            cand[0, 1] = tv.ancestor_at(Nb, pair[1], split_depth)
             cand[0, 2] = pair[0]
             cand[0, 3] = pair[1]
             cval[0] = best
@@ -107,7 +107,7 @@ def _contacts_kernel(
         pair[0] = -1
         pair[1] = -1
         return code
-    m = tv.select_spread(Sa, Sb, xf, cand, cval, n, k_max, chosen, geom, dmin)
+    m = tv.select_spread(Na, Nb, xf, cand, cval, n, k_max, chosen, geom, dmin)
     for j in range(m):
         i = chosen[j]
         g = geom[i]
@@ -130,11 +130,11 @@ def _contacts_kernel(
 
 
 @njit(cache=True)
-def _penetration_kernel(Sa, Ia, Sb, Ib, Pa, Pb, xf, st, sv, acc, out):
+def _penetration_kernel(Na, Nb, Pa, Pb, xf, st, sv, acc, pair, out):
     """out: volume, force direction (3, unit, A→B, world), centre (3, world), pairs, visits."""
     if not tv.relative_pose(Pa, Pb, xf):
         return tv.BAD_POSE
-    code, visits = tv.penetration(Sa, Ia, Sb, Ib, xf, st, sv, acc)
+    code, visits = tv.penetration(Na, Nb, xf, st, sv, acc, pair)
     if code != tv.OK:
         return code
     vol = acc[0]
@@ -149,7 +149,7 @@ def _penetration_kernel(Sa, Ia, Sb, Ib, Pa, Pb, xf, st, sv, acc, out):
     if vol > 0.0:
         _world_point(Pa, acc[4] / vol, acc[5] / vol, acc[6] / vol, out, 4)
     else:
-        _world_point(Pa, Sa[0, 0], Sa[0, 1], Sa[0, 2], out, 4)
+        _world_point(Pa, Na[0, 0], Na[0, 1], Na[0, 2], out, 4)
     out[7] = acc[7]
     out[8] = visits
     out[9] = f
@@ -270,15 +270,16 @@ class Query:
         self.tree_a = tree_a
         self.tree_b = tree_b
         self.error_bound = float(tree_a.error_bound + tree_b.error_bound)
-        self.Sa, self.Ia = tv.pack(tree_a)
-        self.Sb, self.Ib = tv.pack(tree_b)
-        cap = tv.stack_size(self.Ia, self.Ib)
+        self.Na = tv.pack(tree_a)
+        self.Nb = tv.pack(tree_b)
+        cap = tv.stack_size(self.Na, self.Nb)
         self._st = np.zeros((cap, 2), np.int64)
         self._sv = np.zeros(cap)
         self._xf = np.zeros(12)
         self._ref = np.zeros(14)
         self._pair = np.full(2, -1, np.int64)  # distance coherence
         self._cpair = np.full(2, -1, np.int64)  # single-point contact coherence
+        self._ppair = np.full(2, -1, np.int64)  # scratch of the volume traversal
         self._geom = np.zeros((CANDIDATES, 12))
         self._dout = np.zeros(9)
         self._cand = np.zeros((CANDIDATES, 4), np.int64)
@@ -338,7 +339,7 @@ class Query:
             raise ValueError(f"method must be 'distance' or 'backtracking', got {method!r}")
         out = self._dout
         code = _distance_kernel(
-            self.Sa, self.Ia, self.Sb, self.Ib, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
+            self.Na, self.Nb, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
             m, bool(skip), float(tolerance), self.error_bound, self._xf, self._ref, self._st, self._sv, self._pair, self._geom[0], out,
         )
         self._check(code)
@@ -384,7 +385,7 @@ class Query:
         if k != self._k:
             self._resize_contacts(k)
         code = _contacts_kernel(
-            self.Sa, self.Ia, self.Sb, self.Ib, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
+            self.Na, self.Nb, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
             m, int(split_depth), float(margin), k,
             self._xf, self._st, self._sv, self._cpair, self._prev, self._n_prev, self._cand, self._cval,
             self._chosen, self._geom, self._dmin, self._pos, self._nrm, self._dep, self._ids, self._info,
@@ -407,8 +408,8 @@ class Query:
         """Penetration volume: Σ of lens volumes of all overlapping leaf-sphere pairs."""
         out = self._pout
         code = _penetration_kernel(
-            self.Sa, self.Ia, self.Sb, self.Ib, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
-            self._xf, self._st, self._sv, self._acc, out,
+            self.Na, self.Nb, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
+            self._xf, self._st, self._sv, self._acc, self._ppair, out,
         )
         self._check(code)
         r = PenetrationResult()
