@@ -156,6 +156,17 @@ def _penetration_kernel(Na, Nb, Pa, Pb, xf, st, sv, acc, pair, out):
     return tv.OK
 
 
+@njit(cache=True)
+def _distance_batch(Na, Nb, Pa, Pb, method, skip, tol, eps, xf, ref, st, sv, pair, geom, out, res):
+    """Replay frames ``k``: ``res[k] = distance, lower bound, visits, code`` (no Python per frame)."""
+    for k in range(Pa.shape[0]):
+        code = _distance_kernel(Na, Nb, Pa[k], Pb[k], method, skip, tol, eps, xf, ref, st, sv, pair, geom, out)
+        res[k, 0] = out[0]
+        res[k, 1] = out[1]
+        res[k, 2] = out[8]
+        res[k, 3] = code
+
+
 class DistanceResult:
     """Answer of ``Query.distance``.
 
@@ -353,6 +364,49 @@ class Query:
         r.visits = int(out[8])
         r.leaf_pair = (int(self._pair[0]), int(self._pair[1]))
         return r
+
+    def distance_batch(self, poses_a, poses_b, *, method: str = "backtracking", skip: bool = False,
+                       tolerance: float = 0.0) -> dict:
+        """``distance`` over a sequence of frames in one kernel call (coherence carries over).
+
+        Parameters
+        ----------
+        poses_a, poses_b : array (n, 4, 4)
+            One pose per frame, or one (4, 4) pose for all frames.
+
+        Returns
+        -------
+        dict
+            ``distance``, ``error_bound`` (per frame, same meaning as ``distance()``),
+            ``visits`` and ``skipped`` arrays.
+        """
+        m = METHODS.get(method, -1)
+        if m not in (0, 1):
+            raise ValueError(f"method must be 'distance' or 'backtracking', got {method!r}")
+        if not (math.isfinite(tolerance) and tolerance >= 0):
+            raise ValueError(f"tolerance must be finite and ≥ 0, got {tolerance}")
+        Pa = np.asarray(poses_a, dtype=np.float64)
+        Pb = np.asarray(poses_b, dtype=np.float64)
+        n = max(Pa.shape[0] if Pa.ndim == 3 else 1, Pb.shape[0] if Pb.ndim == 3 else 1)
+        Pa = np.broadcast_to(Pa, (n, 4, 4)).copy() if Pa.shape[-2:] == (4, 4) else Pa
+        Pb = np.broadcast_to(Pb, (n, 4, 4)).copy() if Pb.shape[-2:] == (4, 4) else Pb
+        if Pa.shape != (n, 4, 4) or Pb.shape != (n, 4, 4):
+            raise ValueError(f"poses must be (n, 4, 4) or (4, 4) arrays, got {np.shape(poses_a)} and {np.shape(poses_b)}")
+        res = np.zeros((n, 4))
+        _distance_batch(
+            self.Na, self.Nb, Pa, Pb, m, bool(skip), float(tolerance), self.error_bound,
+            self._xf, self._ref, self._st, self._sv, self._pair, self._geom[0], self._dout, res,
+        )
+        code = res[:, 3].astype(np.int64)
+        bad = np.flatnonzero(code < 0)
+        if len(bad):
+            self._check(int(code[bad[0]]))
+        return {
+            "distance": res[:, 0].copy(),
+            "error_bound": res[:, 0] - res[:, 1] + self.error_bound,
+            "visits": res[:, 2].astype(np.int64),
+            "skipped": code == tv.SKIPPED,
+        }
 
     def contacts(self, pose_a, pose_b, *, max_contacts: int | None = None, split_depth: int = 3,
                  margin: float = 0.0, method: str = "multipoint") -> ContactResult:

@@ -72,21 +72,28 @@ def stack_size(Na, Nb):
 
 
 @njit(cache=True, inline="always")
+def _rigid(P):
+    """``P`` is finite and its rotation block orthonormal."""
+    for i in range(3):
+        for j in range(4):
+            if not math.isfinite(P[i, j]):
+                return False
+    for i in range(3):
+        for j in range(3):
+            s = P[0, i] * P[0, j] + P[1, i] * P[1, j] + P[2, i] * P[2, j]
+            if abs(s - (1.0 if i == j else 0.0)) > RIGID_TOL:
+                return False
+    return True
+
+
+@njit(cache=True, inline="always")
 def relative_pose(Pa, Pb, xf):
     """``xf`` ← pose of B in A's frame, ``Pa^-1 Pb`` for rigid 4x4 ``Pa, Pb``.
 
     Returns False when either pose is non-finite or its rotation is not orthonormal.
     """
-    for P in (Pa, Pb):
-        for i in range(3):
-            for j in range(4):
-                if not math.isfinite(P[i, j]):
-                    return False
-        for i in range(3):
-            for j in range(3):
-                s = P[0, i] * P[0, j] + P[1, i] * P[1, j] + P[2, i] * P[2, j]
-                if abs(s - (1.0 if i == j else 0.0)) > RIGID_TOL:
-                    return False
+    if not (_rigid(Pa) and _rigid(Pb)):
+        return False
     for i in range(3):
         for j in range(3):
             xf[3 * i + j] = Pa[0, i] * Pb[0, j] + Pa[1, i] * Pb[1, j] + Pa[2, i] * Pb[2, j]

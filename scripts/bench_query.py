@@ -1,0 +1,272 @@
+"""Query benchmark: one scripted chewing motion of the mandible against the maxilla, replayed
+with every IST traversal at several ε and with coal's exact distance on the same frames.
+
+Writes ``out/bench_query.json``, ``out/bench_query.png`` and ``out/bench_query.md``.
+
+    python scripts/bench_query.py                  # real pair (../shared/data/jaw) + bundled jaws
+    python scripts/bench_query.py --eps 4e-4,2e-4,1e-4 --frames 2000
+    python scripts/bench_query.py --quick          # 400 frames, ε 0.4 mm only
+
+Times are per frame, measured around each Python call (so they include ~2 µs of dispatch),
+plus the kernel-only mean of a whole replay inside numba (what a MuJoCo callback pays).
+Trees are cached in ``out/trees`` (rebuilt when the mesh changes).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import mjist
+from mjist import jaw
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED_JAW = ROOT.parent / "shared" / "data" / "jaw"
+CLENCH = 5e-5  # closed pose: 0.05 mm past first touch, so the closed phase is in contact
+
+
+def pairs_available():
+    out = {}
+    if (SHARED_JAW / "maxilla.obj").exists():
+        out["real"] = (SHARED_JAW / "maxilla.obj", SHARED_JAW / "mandible.obj")
+    if (ROOT / "models" / "maxilla.stl").exists():
+        out["bundled"] = (ROOT / "models" / "maxilla.stl", ROOT / "models" / "mandible.stl")
+    return out
+
+
+def tree_for(path, eps, name, cache):
+    mesh = mjist.load_mesh(path)
+    f = cache / f"{name}_{eps:g}.ist.npz"
+    try:
+        return mjist.load_tree(f, expect_hash=mesh.content_hash), mesh
+    except mjist.TreeFileError:
+        pass
+    print(f"  building {name} at ε {eps * 1e3:g} mm ...", flush=True)
+    t = mjist.build(mesh.trimesh(), max_error=eps)
+    t.save(f)
+    return t, mesh
+
+
+def timed(fn, poses):
+    ts = np.empty(len(poses))
+    vals = []
+    I = np.eye(4)
+    for k, P in enumerate(poses):
+        t0 = time.perf_counter_ns()
+        r = fn(I, P)
+        ts[k] = (time.perf_counter_ns() - t0) * 1e-3
+        vals.append(r)
+    return ts, vals
+
+
+def stats(ts):
+    return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)), "mean_us": float(np.mean(ts))}
+
+
+def run_pair(label, paths, eps_list, frames, cache):
+    print(f"[{label}] {paths[0].name} + {paths[1].name}", flush=True)
+    mx = mjist.load_mesh(paths[0])
+    md = mjist.load_mesh(paths[1])
+    bx, bd = jaw.coal_bvh(mx.vertices, mx.faces), jaw.coal_bvh(md.vertices, md.faces)
+    hinge = jaw.hinge_point(md.vertices)
+    touch = jaw.touching_offset(bx, bd)
+    poses = jaw.chewing_motion(frames, hinge, contact_offset=touch + CLENCH)
+    I = np.eye(4)
+    # coal on the same frames
+    coal_t = np.empty(frames)
+    coal_d = np.empty(frames)
+    for k, P in enumerate(poses):
+        t0 = time.perf_counter_ns()
+        coal_d[k] = jaw.coal_distance(bx, I, bd, P)
+        coal_t[k] = (time.perf_counter_ns() - t0) * 1e-3
+    truth = np.maximum(coal_d, 0.0)
+    res = {
+        "maxilla": str(paths[0].name), "mandible": str(paths[1].name),
+        "vertices": [int(len(mx.vertices)), int(len(md.vertices))],
+        "frames": frames, "hinge": hinge.tolist(), "touching_offset": touch, "clench": CLENCH,
+        "coal": {**stats(coal_t), "colliding_frames": int((coal_d <= 0).sum())},
+        "coal_times": coal_t.tolist(), "coal_distance": coal_d.tolist(), "levels": [],
+    }
+    for eps in eps_list:
+        ta, _ = tree_for(paths[0], eps, f"{label}_maxilla", cache)
+        tb, _ = tree_for(paths[1], eps, f"{label}_mandible", cache)
+        q = mjist.Query(ta, tb)
+        lvl = {
+            "eps_target": eps, "error_bound": q.error_bound,
+            "leaves": [ta.num_leaves, tb.num_leaves], "depth": [ta.depth, tb.depth],
+            "coverage": [ta.coverage, tb.coverage], "methods": {},
+        }
+        series = {}
+        dvals = {}
+        for name, kw in (
+            ("distance", {"method": "distance"}),
+            ("backtracking", {"method": "backtracking"}),
+            ("backtracking+skip", {"method": "backtracking", "skip": True}),
+        ):
+            q.reset()
+            q.distance(I, poses[0], **kw)  # compile / warm
+            q.reset()
+            ts, rs = timed(lambda a, b: q.distance(a, b, **kw), poses)
+            d = np.array([r.distance for r in rs])
+            eb = np.array([r.error_bound for r in rs])
+            viol = int(np.sum((truth > d + 1e-9) | (d - eb > truth + 1e-9)))
+            exact = np.array([not r.skipped for r in rs])
+            err = d[exact] - truth[exact]
+            lvl["methods"][name] = {
+                **stats(ts), "visits_mean": float(np.mean([r.visits for r in rs])),
+                "skipped": int((~exact).sum()), "bound_violations": viol,
+                "err_max": float(err.max()), "err_median": float(np.median(err)),
+                "speedup_vs_coal": float(np.median(coal_t) / np.median(ts)),
+            }
+            series[name] = ts
+            dvals[name] = d
+            print(f"  ε {q.error_bound * 1e3:.3f} mm {name:18s} median {np.median(ts):8.1f} µs  p99 {np.percentile(ts, 99):8.1f}"
+                  f"  max err {err.max() * 1e3:.3f} mm  violations {viol}", flush=True)
+        for name, m in (("distance", "distance"), ("backtracking", "backtracking")):
+            q.reset()
+            q.distance_batch(I, poses[:2], method=m)
+            q.reset()
+            t0 = time.perf_counter()
+            out = q.distance_batch(I, poses, method=m)
+            lvl["methods"][name]["kernel_mean_us"] = (time.perf_counter() - t0) / frames * 1e6
+            # the one-call replay gives exactly the per-call answers
+            if not np.array_equal(out["distance"], dvals[name]):
+                raise AssertionError(f"distance_batch({m}) disagrees with per-call distance()")
+        q.reset()
+        q.contacts(I, poses[0])
+        ts, rs = timed(lambda a, b: q.contacts(a, b, max_contacts=4, split_depth=3), poses)
+        lvl["methods"]["multipoint"] = {**stats(ts), "contacts_mean": float(np.mean([r.count for r in rs])),
+                                        "candidates_max": int(max(r.candidates for r in rs))}
+        series["multipoint"] = ts
+        q.penetration_volume(I, poses[0])
+        ts, rs = timed(q.penetration_volume, poses)
+        vol = np.array([r.volume for r in rs])
+        lvl["methods"]["penetration_volume"] = {**stats(ts), "volume_max_mm3": float(vol.max() * 1e9),
+                                                "pairs_max": int(max(r.pairs for r in rs))}
+        series["penetration_volume"] = ts
+        bt = lvl["methods"]
+        lvl["backtracking_speedup"] = bt["distance"]["median_us"] / bt["backtracking"]["median_us"]
+        lvl["series"] = {k: v.tolist() for k, v in series.items()}
+        lvl["ist_distance"] = [float(x) for x in q.distance_batch(I, poses, method="distance")["distance"]]
+        for k in ("multipoint", "penetration_volume"):
+            print(f"  ε {q.error_bound * 1e3:.3f} mm {k:18s} median {bt[k]['median_us']:8.1f} µs  p99 {bt[k]['p99_us']:8.1f}", flush=True)
+        res["levels"].append(lvl)
+    print(f"  coal exact distance median {np.median(coal_t):.0f} µs, p99 {np.percentile(coal_t, 99):.0f} µs", flush=True)
+    return res
+
+
+def plot(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(2, 3, figsize=(17, 9.5))
+    colors = {"distance": "C0", "backtracking": "C1", "backtracking+skip": "C2", "multipoint": "C3", "penetration_volume": "C4"}
+    for pi, (label, r) in enumerate(results.items()):
+        ls = "-" if pi == 0 else "--"
+        lv = r["levels"]
+        leaves = [np.sqrt(l["leaves"][0] * l["leaves"][1]) for l in lv]
+        depth = [0.5 * (l["depth"][0] + l["depth"][1]) for l in lv]
+        for m in colors:
+            med = [l["methods"][m]["median_us"] for l in lv]
+            axs[0, 1].plot(leaves, med, ls, marker="o", color=colors[m], label=f"{label} {m}")
+            axs[0, 2].plot(depth, med, ls, marker="o", color=colors[m], label=f"{label} {m}")
+        axs[0, 1].axhline(r["coal"]["median_us"], color="k", ls=ls, lw=1, label=f"{label} coal")
+        axs[0, 2].axhline(r["coal"]["median_us"], color="k", ls=ls, lw=1)
+        eb = [l["error_bound"] * 1e3 for l in lv]
+        emax = [l["methods"]["distance"]["err_max"] * 1e3 for l in lv]
+        emed = [l["methods"]["distance"]["err_median"] * 1e3 for l in lv]
+        axs[1, 0].plot(leaves, eb, ls, marker="s", color="C3", label=f"{label} bound ε_A+ε_B")
+        axs[1, 0].plot(leaves, emax, ls, marker="o", color="C0", label=f"{label} max |IST-coal|")
+        axs[1, 0].plot(leaves, emed, ls, marker="^", color="C2", label=f"{label} median |IST-coal|")
+        x = np.arange(len(lv)) + 0.35 * pi
+        axs[1, 1].bar(x, [l["backtracking_speedup"] for l in lv], width=0.35, label=f"{label} backtracking / distance")
+        axs[1, 1].set_xticks(np.arange(len(lv)), [f"ε {l['error_bound'] * 1e3:.2f}" for l in lv])
+        if pi == 0:
+            fine = lv[-1]
+            fr = np.arange(r["frames"])
+            axs[0, 0].semilogy(fr, r["coal_times"], color="k", lw=0.6, label="coal")
+            for m in colors:
+                axs[0, 0].semilogy(fr, fine["series"][m], color=colors[m], lw=0.6, label=m)
+            axs[0, 0].set_title(f"{label} pair, ε_A+ε_B = {fine['error_bound'] * 1e3:.2f} mm: time per frame")
+            axs[1, 2].plot(fr, np.array(r["coal_distance"]) * 1e3, color="k", lw=1, label="coal (exact)")
+            d = np.array(fine["ist_distance"]) * 1e3
+            axs[1, 2].plot(fr, d, color="C0", lw=1, label="IST distance")
+            axs[1, 2].fill_between(fr, d - fine["error_bound"] * 1e3, d, color="C0", alpha=0.2, label="IST bound")
+            axs[1, 2].set_title("distance along the motion")
+    axs[0, 0].set_xlabel("frame")
+    axs[0, 0].set_ylabel("µs")
+    for ax, xl in ((axs[0, 1], "leaves (geometric mean of the two trees)"), (axs[0, 2], "mean tree depth")):
+        ax.set_xlabel(xl)
+        ax.set_ylabel("median µs per frame")
+        ax.set_yscale("log")
+    axs[0, 1].set_xscale("log")
+    axs[0, 1].set_title("speed vs number of leaves")
+    axs[0, 2].set_title("speed vs tree depth")
+    axs[1, 0].set_xscale("log")
+    axs[1, 0].set_xlabel("leaves")
+    axs[1, 0].set_ylabel("mm")
+    axs[1, 0].set_title("error vs number of leaves")
+    axs[1, 1].set_title("backtracking speedup (median)")
+    axs[1, 2].set_xlabel("frame")
+    axs[1, 2].set_ylabel("mm")
+    for ax in axs.flat:
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def markdown(results, meta):
+    lines = [f"Query benchmark ({meta['frames']} frames of one chewing motion; {meta['machine']}).", ""]
+    lines.append("| pair | ε_A+ε_B mm | leaves | depth | method | median µs | p99 µs | kernel µs | × coal | max err mm | bound viol. |")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
+    for label, r in results.items():
+        for l in r["levels"]:
+            for m, s in l["methods"].items():
+                lines.append(
+                    f"| {label} | {l['error_bound'] * 1e3:.3f} | {l['leaves'][0]:,} / {l['leaves'][1]:,} | {l['depth'][0]}/{l['depth'][1]} "
+                    f"| {m} | {s['median_us']:.1f} | {s['p99_us']:.1f} | {s.get('kernel_mean_us', float('nan')):.1f} "
+                    f"| {s.get('speedup_vs_coal', float('nan')):.0f} | {s.get('err_max', float('nan')) * 1e3:.3f} | {s.get('bound_violations', '')} |"
+                )
+        lines.append(f"| {label} | exact | | | coal distance | {r['coal']['median_us']:.0f} | {r['coal']['p99_us']:.0f} | | 1 | 0 | |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--eps", default="4e-4,2e-4", help="per-tree max_error list in metres (default 4e-4,2e-4)")
+    ap.add_argument("--frames", type=int, default=2000)
+    ap.add_argument("--pairs", default="real,bundled")
+    ap.add_argument("--quick", action="store_true", help="400 frames, ε 4e-4 only")
+    ap.add_argument("--out", default=str(ROOT / "out"))
+    a = ap.parse_args(argv)
+    eps = [4e-4] if a.quick else [float(x) for x in a.eps.split(",")]
+    frames = 400 if a.quick else a.frames
+    out = Path(a.out)
+    cache = out / "trees"
+    cache.mkdir(parents=True, exist_ok=True)
+    avail = pairs_available()
+    want = [p for p in a.pairs.split(",") if p in avail]
+    if not want:
+        print(f"no jaw pair found (looked for {SHARED_JAW} and models/maxilla.stl)", file=sys.stderr)
+        return 2
+    results = {p: run_pair(p, avail[p], eps, frames, cache) for p in want}
+    meta = {"frames": frames, "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+            "mjist": mjist.__version__, "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", 0) or 0)}
+    (out / "bench_query.json").write_text(json.dumps({"meta": meta, "results": results}))
+    plot(results, out / "bench_query.png")
+    (out / "bench_query.md").write_text(markdown(results, meta))
+    print(markdown(results, meta))
+    print(f"wrote {out / 'bench_query.json'}, {out / 'bench_query.png'}, {out / 'bench_query.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""Regenerate the bundled jaw models: models/maxilla.obj, models/mandible.obj, models/occlusion.json.
+
+    python scripts/make_jaws.py            # then: MUJOCO_GL=egl python scripts/render_jaws.py
+
+Deterministic: the same mjist version writes the same files (see mjist/jawmodel.py for the design).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mjist import jaw, jawmodel
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def write(out: Path, spacing: float = jawmodel.DEFAULT_SPACING) -> dict:
+    maxilla, mandible, meta = jawmodel.generate(spacing)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, m in (("maxilla", maxilla), ("mandible", mandible)):
+        (out / f"{name}.obj").write_text(m.export(file_type="obj", digits=9, include_normals=False, include_texture=False))
+    # the measured state of the ground-truth pose, for the record
+    bx = jaw.coal_bvh(maxilla.vertices, maxilla.faces)
+    bd = jaw.coal_bvh(mandible.vertices, mandible.faces)
+    I = np.eye(4)
+    meta.update({
+        "maxilla_pose": I.tolist(),
+        "mandible_pose": I.tolist(),
+        "ground_truth": "centric occlusion: the design pose, teeth touching at the designed contacts",
+        "coal_distance_at_ground_truth_m": float(jaw.coal_distance(bx, I, bd, I)),
+        "vertices": {"maxilla": int(len(maxilla.vertices)), "mandible": int(len(mandible.vertices))},
+        "shells": {"maxilla": int(maxilla.body_count), "mandible": int(mandible.body_count)},
+    })
+    (out / "occlusion.json").write_text(json.dumps(meta, indent=1) + "\n")
+    return meta
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=str(ROOT / "models"))
+    ap.add_argument("--spacing", type=float, default=jawmodel.DEFAULT_SPACING, help="marching-cubes spacing, mm")
+    a = ap.parse_args()
+    meta = write(Path(a.out), a.spacing)
+    print(json.dumps({k: meta[k] for k in ("vertices", "shells", "coal_distance_at_ground_truth_m", "hinge")}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
