@@ -34,9 +34,9 @@ CLENCH = 5e-5  # closed pose: 0.05 mm past first touch, so the closed phase is i
 def pairs_available():
     out = {}
     if (SHARED_JAW / "maxilla.obj").exists():
-        out["real"] = (SHARED_JAW / "maxilla.obj", SHARED_JAW / "mandible.obj")
-    if (ROOT / "models" / "maxilla.stl").exists():
-        out["bundled"] = (ROOT / "models" / "maxilla.stl", ROOT / "models" / "mandible.stl")
+        out["real"] = SHARED_JAW
+    if (jaw.BUNDLED / "maxilla.obj").exists():
+        out["bundled"] = jaw.BUNDLED
     return out
 
 
@@ -69,13 +69,13 @@ def stats(ts):
     return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)), "mean_us": float(np.mean(ts))}
 
 
-def run_pair(label, paths, eps_list, frames, cache):
-    print(f"[{label}] {paths[0].name} + {paths[1].name}", flush=True)
-    mx = mjist.load_mesh(paths[0])
-    md = mjist.load_mesh(paths[1])
+def run_pair(label, folder, eps_list, frames, cache):
+    mx, md, info = jaw.load_pair(folder)
+    paths = (Path(info["paths"]["maxilla"]), Path(info["paths"]["mandible"]))
+    print(f"[{label}] {paths[0]} + {paths[1]} (occlusion: {info['source']})", flush=True)
     bx, bd = jaw.coal_bvh(mx.vertices, mx.faces), jaw.coal_bvh(md.vertices, md.faces)
-    hinge = jaw.hinge_point(md.vertices)
-    touch = jaw.touching_offset(bx, bd)
+    hinge = info["hinge"]
+    touch = float(info["mandible_pose"][1, 3])  # both pairs' occlusion is a vertical offset
     poses = jaw.chewing_motion(frames, hinge, contact_offset=touch + CLENCH)
     I = np.eye(4)
     # coal on the same frames
@@ -89,7 +89,7 @@ def run_pair(label, paths, eps_list, frames, cache):
     res = {
         "maxilla": str(paths[0].name), "mandible": str(paths[1].name),
         "vertices": [int(len(mx.vertices)), int(len(md.vertices))],
-        "frames": frames, "hinge": hinge.tolist(), "touching_offset": touch, "clench": CLENCH,
+        "frames": frames, "hinge": np.asarray(hinge).tolist(), "touching_offset": touch, "clench": CLENCH,
         "coal": {**stats(coal_t), "colliding_frames": int((coal_d <= 0).sum())},
         "coal_times": coal_t.tolist(), "coal_distance": coal_d.tolist(), "levels": [],
     }
@@ -255,7 +255,7 @@ def main(argv=None):
     avail = pairs_available()
     want = [p for p in a.pairs.split(",") if p in avail]
     if not want:
-        print(f"no jaw pair found (looked for {SHARED_JAW} and models/maxilla.stl)", file=sys.stderr)
+        print(f"no jaw pair found (looked for {SHARED_JAW} and {jaw.BUNDLED})", file=sys.stderr)
         return 2
     results = {p: run_pair(p, avail[p], eps, frames, cache) for p in want}
     meta = {"frames": frames, "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
