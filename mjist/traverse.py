@@ -296,20 +296,7 @@ def descend(Na, Nb, xf, st, sv, base, sp, best, tol, pair, stop_at, visits, mode
                     st[sp, 1] = c
                     sv[sp] = math.sqrt(d2) - ra - Nb[c, 3]
                     sp += 1
-        # insertion sort of the new entries, descending, so the nearest pair is popped first
-        for i in range(top + 1, sp):
-            v = sv[i]
-            p0 = st[i, 0]
-            p1 = st[i, 1]
-            j = i - 1
-            while j >= top and sv[j] < v:
-                sv[j + 1] = sv[j]
-                st[j + 1, 0] = st[j, 0]
-                st[j + 1, 1] = st[j, 1]
-                j -= 1
-            sv[j + 1] = v
-            st[j + 1, 0] = p0
-            st[j + 1, 1] = p1
+        _sort_desc(st, sv, top, sp)  # nearest pair popped first
     return best, base, visits
 
 
@@ -347,31 +334,26 @@ def min_distance_backtrack(Na, Nb, xf, st, sv, tol, pair, stop_at):
         return best, OK, visits
     cap = st.shape[0]
     while x != 0 or y != 0:
-        if y == 0 or (x != 0 and Na[int(Na[x, PAR]), 3] <= Nb[int(Nb[y, PAR]), 3]):
-            p = int(Na[x, PAR])
-            sp = 0
-            c0 = int(Na[p, CS])
-            for c in range(c0, c0 + int(Na[p, CC])):
-                if c != x and sp < cap:
-                    v = pair_value(Na, Nb, xf, c, y)
-                    if v < best - tol:
-                        st[sp, 0] = c
-                        st[sp, 1] = y
-                        sv[sp] = v
-                        sp += 1
+        # climb the side whose parent is smaller (keeps the pair balanced)
+        climb_a = y == 0 or (x != 0 and Na[int(Na[x, PAR]), 3] <= Nb[int(Nb[y, PAR]), 3])
+        N = Na if climb_a else Nb
+        came = x if climb_a else y
+        p = int(N[came, PAR])
+        sp = 0
+        c0 = int(N[p, CS])
+        for c in range(c0, c0 + int(N[p, CC])):
+            if c != came and sp < cap:
+                a = c if climb_a else x
+                b = y if climb_a else c
+                v = pair_value(Na, Nb, xf, a, b)
+                if v < best - tol:
+                    st[sp, 0] = a
+                    st[sp, 1] = b
+                    sv[sp] = v
+                    sp += 1
+        if climb_a:
             x = p
         else:
-            p = int(Nb[y, PAR])
-            sp = 0
-            c0 = int(Nb[p, CS])
-            for c in range(c0, c0 + int(Nb[p, CC])):
-                if c != y and sp < cap:
-                    v = pair_value(Na, Nb, xf, x, c)
-                    if v < best - tol:
-                        st[sp, 0] = x
-                        st[sp, 1] = c
-                        sv[sp] = v
-                        sp += 1
             y = p
         _sort_desc(st, sv, 0, sp)  # visit the nearest sibling first
         best, spx, visits = descend_min(Na, Nb, xf, st, sv, 0, sp, best, tol, pair, stop_at, visits)
