@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from .bound import certify, tight_bound
+from .bound import certify, surface_gaps, tight_bound
 from .bvh import BVH
 from .hierarchy import build_hierarchy
 from .mesh import load_mesh
@@ -200,6 +200,7 @@ def build(
     bar.stage("error bound")
     t = time.perf_counter()
     eps, eps_lo = tight_bound(m.vertices, m.faces, arrays["leaf_centers"], arrays["leaf_radii"], known=certified)
+    mean_gap = float(surface_gaps(m.vertices, m.faces, arrays["leaf_centers"], arrays["leaf_radii"], seed=int(seed)).mean())
     timings["bound"] = time.perf_counter() - t + t_cert
     timings["total"] = time.perf_counter() - t0
     bar.step(f"eps {eps:.3g}")
@@ -228,6 +229,7 @@ def build(
             "finest_spacing": vox.spacing(levels),
             "points_evaluated": int(vox.points_evaluated),
             "repairs": list(m.repairs),
+            "mean_gap": mean_gap,
         },
     )
 

@@ -7,3 +7,7 @@ class MeshError(ValueError):
 
 class TreeFileError(ValueError):
     """A saved tree (or cache entry) is corrupt, of another format version, or for another mesh."""
+
+
+class ConfigError(ValueError):
+    """The model's mjist configuration (MJCF ``<custom>`` or ``attach`` arguments) is invalid."""

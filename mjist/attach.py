@@ -1,0 +1,491 @@
+"""Plug IST contacts into MuJoCo: ``mjist.attach(model)`` and ``mjist.load_model(path)``.
+
+After attaching, an unmodified ``mujoco.mj_step`` loop, ``mujoco.viewer`` and
+``mujoco.rollout`` get IST contacts for the managed geom pairs; the work happens in the
+numba cfuncs of ``mjist.hook`` with no Python in the step.
+
+Configuration lives in the MJCF, MuJoCo's own way (``<custom>`` elements), and any of it
+can be overridden by ``attach`` keyword arguments:
+
+.. code-block:: xml
+
+    <custom>
+      <text    name="mjist_geoms"       data="maxilla mandible"/>  <!-- or "all" (default) -->
+      <numeric name="mjist_max_error"   data="0.0003"/>  <!-- metres; default 0.5 % of the mesh size -->
+      <numeric name="mjist_contacts"    data="4"/>       <!-- per pair, ≤ MuJoCo's cap -->
+      <text    name="mjist_offset"      data="mean"/>    <!-- none | mean | a distance in metres -->
+      <text    name="mjist_mode"        data="constraint"/>
+      <numeric name="mjist_split_depth" data="3"/>
+      <text    name="mjist_skip"        data="true"/>
+    </custom>
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import asdict, dataclass, field
+
+import mujoco
+import numpy as np
+
+from . import mjabi as abi
+from .errors import ConfigError
+
+_MODES = ("constraint",)
+_TRUE = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
+SDF_OCTREE_DEPTH = 1  # native octree kept minimal for mesh-backed sdf geoms the IST takes over
+
+
+@dataclass
+class Config:
+    """How the IST stands in for MuJoCo's mesh contacts (see the module docstring)."""
+
+    geoms: list[str] | str = "all"
+    max_error: float | None = None
+    contacts: int | None = None
+    offset: str | float = "mean"
+    mode: str = "constraint"
+    split_depth: int = 3
+    skip: bool = True
+    state_slots: int = 256
+    candidates: int = 64
+    branching: int = 4
+    seed: int = 0
+
+    def validate(self) -> "Config":
+        if self.mode not in _MODES:
+            if self.mode == "penalty":
+                raise ConfigError(
+                    "mjist_mode='penalty' (penetration-volume forces instead of MuJoCo contacts) belongs to the "
+                    "haptic layer, which this version does not have yet: use mode 'constraint'"
+                )
+            raise ConfigError(f"mjist_mode={self.mode!r} is not one of {_MODES}")
+        if self.max_error is not None and not (math.isfinite(self.max_error) and self.max_error > 0):
+            raise ConfigError(f"mjist_max_error={self.max_error} must be a positive distance in metres (e.g. 0.0003)")
+        if self.contacts is not None and not (1 <= int(self.contacts) <= 50):
+            raise ConfigError(f"mjist_contacts={self.contacts} must be between 1 and 50 (MuJoCo's cap still applies)")
+        if isinstance(self.offset, str):
+            if self.offset not in ("none", "mean"):
+                try:
+                    self.offset = float(self.offset)
+                except ValueError:
+                    raise ConfigError(f"mjist_offset={self.offset!r} must be 'none', 'mean' or a distance in metres") from None
+        if not isinstance(self.offset, str) and not (math.isfinite(self.offset) and self.offset >= 0):
+            raise ConfigError(f"mjist_offset={self.offset} must be ≥ 0 (metres)")
+        if not 0 <= int(self.split_depth) <= 16:
+            raise ConfigError(f"mjist_split_depth={self.split_depth} must be between 0 and 16")
+        if not 1 <= int(self.state_slots) <= 1 << 20:
+            raise ConfigError(f"mjist_state_slots={self.state_slots} must be between 1 and 2^20")
+        if not 1 <= int(self.candidates) <= 4096:
+            raise ConfigError(f"mjist_candidates={self.candidates} must be between 1 and 4096")
+        return self
+
+
+# MJCF name -> (Config field, kind)
+_KEYS = {
+    "mjist_geoms": ("geoms", "text"),
+    "mjist_max_error": ("max_error", "numeric"),
+    "mjist_contacts": ("contacts", "numeric"),
+    "mjist_offset": ("offset", "text"),
+    "mjist_mode": ("mode", "text"),
+    "mjist_split_depth": ("split_depth", "numeric"),
+    "mjist_skip": ("skip", "text"),
+    "mjist_state_slots": ("state_slots", "numeric"),
+    "mjist_candidates": ("candidates", "numeric"),
+    "mjist_branching": ("branching", "numeric"),
+    "mjist_seed": ("seed", "numeric"),
+}
+
+
+def _customs(model) -> dict[str, tuple[str, object]]:
+    out = {}
+    for i in range(model.ntext):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_TEXT, i) or ""
+        adr, size = model.text_adr[i], model.text_size[i]
+        raw = bytes(model.text_data[adr:adr + size]).split(b"\0")[0].decode()
+        out[name] = ("text", raw)
+    for i in range(model.nnumeric):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_NUMERIC, i) or ""
+        adr, size = model.numeric_adr[i], model.numeric_size[i]
+        out[name] = ("numeric", np.array(model.numeric_data[adr:adr + size]))
+    return out
+
+
+def read_config(model, **overrides) -> Config:
+    """The model's ``<custom>`` mjist settings, then ``overrides`` (``None`` values ignored)."""
+    cfg = Config()
+    for name, (kind, value) in _customs(model).items():
+        if not name.startswith("mjist_"):
+            continue
+        if name not in _KEYS:
+            raise ConfigError(f"unknown mjist setting {name!r} in <custom>: the known ones are {', '.join(sorted(_KEYS))}")
+        fld, want = _KEYS[name]
+        if kind != want:
+            raise ConfigError(f"<custom> {name!r} must be a <{want}> element, not <{kind}>")
+        if kind == "numeric":
+            if value.size != 1 or not np.isfinite(value[0]):
+                raise ConfigError(f"<numeric name={name!r}> needs exactly one finite number, got {value.tolist()}")
+            v = float(value[0])
+            if fld in ("contacts", "split_depth", "state_slots", "candidates", "branching", "seed"):
+                if v != int(v):
+                    raise ConfigError(f"<numeric name={name!r}> must be an integer, got {v}")
+                v = int(v)
+            setattr(cfg, fld, v)
+        elif fld == "skip":
+            if value.strip().lower() not in _TRUE:
+                raise ConfigError(f"<text name='mjist_skip'> must be true or false, got {value!r}")
+            cfg.skip = _TRUE[value.strip().lower()]
+        elif fld == "geoms":
+            names = value.split()
+            cfg.geoms = "all" if names == ["all"] else names
+        else:
+            setattr(cfg, fld, value.strip())
+    for k, v in overrides.items():
+        if v is not None:
+            if not hasattr(cfg, k):
+                raise TypeError(f"attach() got an unknown setting {k!r}")
+            setattr(cfg, k, v)
+    return cfg.validate()
+
+
+# --------------------------------------------------------------------------- scene analysis
+
+
+def _is_ist_geom(model, g: int) -> bool:
+    t = model.geom_type[g]
+    return t == abi.GEOM_MESH or (t == abi.GEOM_SDF and model.geom_dataid[g] >= 0)
+
+
+def _geom_name(model, g: int) -> str:
+    return mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom #{g}"
+
+
+def managed_geoms(model, cfg: Config) -> list[int]:
+    """Geom ids the configuration asks for (validated)."""
+    if cfg.geoms == "all":
+        return [g for g in range(model.ngeom) if _is_ist_geom(model, g)]
+    out = []
+    for name in cfg.geoms:
+        g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)
+        if g < 0:
+            raise ConfigError(f"mjist_geoms names {name!r}, which is not a geom of this model: check the name or use 'all'")
+        if not _is_ist_geom(model, g):
+            raise ConfigError(
+                f"mjist_geoms names {name!r}, a {mujoco.mjtGeom(model.geom_type[g]).name} geom: only mesh geoms "
+                "(type='mesh', or type='sdf' with a mesh) can get an Inner Sphere Tree"
+            )
+        out.append(g)
+    return out
+
+
+def can_collide(model, g1: int, g2: int) -> bool:
+    """Whether MuJoCo's broad phase can ever pass the pair ``(g1, g2)`` to the narrow phase."""
+    if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT:
+        return False
+    for i in range(model.npair):
+        if {model.pair_geom1[i], model.pair_geom2[i]} == {g1, g2}:
+            return True
+    b1, b2 = model.geom_bodyid[g1], model.geom_bodyid[g2]
+    w1, w2 = model.body_weldid[b1], model.body_weldid[b2]
+    if w1 == w2:
+        return False  # same rigid body (or both static)
+    if not (model.geom_contype[g1] & model.geom_conaffinity[g2] or model.geom_contype[g2] & model.geom_conaffinity[g1]):
+        return False
+    if not (model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_FILTERPARENT):
+        p1, p2 = model.body_weldid[model.body_parentid[w1]], model.body_weldid[model.body_parentid[w2]]
+        if w1 != 0 and w2 != 0 and (p1 == w2 or p2 == w1):
+            return False
+    sig = (min(b1, b2) << 16) + max(b1, b2)
+    return sig not in set(int(s) for s in model.exclude_signature)
+
+
+def mesh_of(model, g: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and faces of geom ``g``'s mesh in the geom frame (as MuJoCo compiled them)."""
+    mid = model.geom_dataid[g]
+    va, vn = model.mesh_vertadr[mid], model.mesh_vertnum[mid]
+    fa, fn = model.mesh_faceadr[mid], model.mesh_facenum[mid]
+    V = np.array(model.mesh_vert[va:va + vn], dtype=np.float64)
+    F = np.array(model.mesh_face[fa:fa + fn], dtype=np.int64)
+    return V, F
+
+
+@dataclass
+class PairInfo:
+    """One IST-managed geom pair."""
+
+    geom1: str
+    geom2: str
+    ids: tuple[int, int]
+    cap: int  # contacts written at most (≤ mj_maxContact)
+    offset: float  # subtracted from the IST distance (metres)
+    error_bound: float  # ε_1 + ε_2
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Handle:
+    """An attached model: its trees, managed pairs and the hook's counters.
+
+    ``detach()`` (or leaving a ``with`` block, or interpreter exit) gives the geoms back to
+    MuJoCo's own collision functions.
+    """
+
+    model: mujoco.MjModel
+    config: Config
+    geoms: dict[str, int] = field(default_factory=dict)
+    trees: dict[str, object] = field(default_factory=dict)
+    pairs: list[PairInfo] = field(default_factory=list)
+    build_seconds: float = 0.0
+    cache_hits: int = 0
+    _entry: object = None
+
+    @property
+    def attached(self) -> bool:
+        from . import registry
+
+        return self._entry is not None and registry._ENTRIES.get(self._entry.address) is self._entry
+
+    def detach(self) -> None:
+        """Give the managed pairs back to MuJoCo; restore the table when no model needs it."""
+        if self._entry is not None:
+            from . import registry
+
+            registry.remove(self._entry)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.detach()
+
+    def stats(self) -> dict:
+        """Hook counters since attach: calls, calls with contacts, contacts, skipped, ..."""
+        from . import hook
+
+        if self._entry is None:
+            return {}
+        c = self._entry.counters
+        return {
+            "calls": int(c[hook.C_CALLS]), "contact_calls": int(c[hook.C_CONTACT_CALLS]),
+            "contacts": int(c[hook.C_CONTACTS]), "skipped": int(c[hook.C_SKIPPED]),
+            "stateless": int(c[hook.C_STATELESS]), "no_stack": int(c[hook.C_NOSTACK]),
+            "bad_pose": int(c[hook.C_BADPOSE]), "failed": int(c[hook.C_FALLBACK]),
+        }
+
+    def reset_state(self) -> None:
+        """Forget every (MjData, pair) coherence slot (answers do not change, only speed)."""
+        if self._entry is not None:
+            self._entry.arrays["keys"][:] = 0
+
+    def summary(self) -> str:
+        lines = [f"mjist: {len(self.pairs)} IST pair(s), {len(self.trees)} tree(s) "
+                 f"({self.cache_hits} from cache, {self.build_seconds:.1f} s building)"]
+        for name, t in self.trees.items():
+            lines.append(f"  {name}: {t.num_leaves} leaves, depth {t.depth}, ε {t.error_bound * 1e3:.3f} mm, "
+                         f"mean gap {t.info.get('mean_gap', float('nan')) * 1e3:.3f} mm")
+        for p in self.pairs:
+            lines.append(f"  {p.geom1} ↔ {p.geom2}: ≤ {p.cap} contacts, offset {p.offset * 1e3:.3f} mm, "
+                         f"ε1+ε2 {p.error_bound * 1e3:.3f} mm")
+        return "\n".join(lines)
+
+
+def _mean_gap(tree, V, F) -> float:
+    g = tree.info.get("mean_gap")
+    if g is None:
+        from .bound import surface_gaps
+
+        g = float(surface_gaps(V, F, tree.leaf_centers, tree.leaf_radii).mean())
+        tree.info["mean_gap"] = g
+    return float(g)
+
+
+def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, progress: bool = False, **settings) -> Handle:
+    """Make MuJoCo use Inner Sphere Tree contacts for the model's mesh geom pairs.
+
+    Parameters
+    ----------
+    model : mujoco.MjModel
+        Keeps working with plain ``mj_step``, the viewer and ``mujoco.rollout``.
+    trees : dict, optional
+        Prebuilt trees by geom name (in the geom's mesh frame, i.e. built from
+        ``mjist.attach.mesh_of(model, g)``); others are built or loaded from the cache.
+    cache_dir : path, optional
+        Tree cache folder (default ``$MJIST_CACHE`` or ``~/.cache/mjist``).
+    progress : bool
+        Progress bars while building trees.
+    **settings
+        Override the MJCF ``<custom>`` settings: ``geoms``, ``max_error``, ``contacts``,
+        ``offset``, ``mode``, ``split_depth``, ``skip``, ``state_slots``, ``candidates``.
+
+    Returns
+    -------
+    Handle
+        ``.detach()``, ``.pairs``, ``.trees``, ``.stats()``. A model with no managed pair
+        installs nothing.
+
+    Raises
+    ------
+    ConfigError
+        Invalid settings (unknown key, a geom that is not a mesh, ...).
+    mjist.mjabi.MuJoCoABIError
+        MuJoCo version or struct layout not the verified one.
+    """
+    import time
+
+    from . import hook, registry
+    from .cache import cached_tree
+    from .traverse import pack, stack_size
+
+    if not isinstance(model, mujoco.MjModel):
+        raise TypeError(f"attach() needs a mujoco.MjModel, got {type(model).__name__}")
+    cfg = read_config(model, **settings)
+    abi.check_version()
+    wanted = managed_geoms(model, cfg)
+    pairs = [(a, b) for i, a in enumerate(wanted) for b in wanted[i + 1:] if can_collide(model, a, b)]
+    handle = Handle(model=model, config=cfg)
+    _warn_primitive_pairs(model, wanted)
+    if not pairs:
+        return handle
+    used = sorted({g for p in pairs for g in p})
+    if len(used) > 181:
+        raise ConfigError(f"{len(used)} IST geoms can meet: at most 181 are supported per model (use mjist_geoms to pick)")
+
+    # trees (cache keyed by the compiled mesh and the build parameters)
+    params = {"max_error": cfg.max_error, "branching": int(cfg.branching), "seed": int(cfg.seed)}
+    trees = dict(trees or {})
+    t0 = time.perf_counter()
+    gap = {}
+    for g in used:
+        name = _geom_name(model, g)
+        V, F = mesh_of(model, g)
+        if name not in trees:
+            tree, hit = cached_tree(V, F, params, folder=cache_dir, progress=progress, name=name)
+            handle.cache_hits += int(hit)
+            trees[name] = tree
+        gap[g] = _mean_gap(trees[name], V, F)
+        handle.trees[name] = trees[name]
+        handle.geoms[name] = g
+    handle.build_seconds = time.perf_counter() - t0
+
+    # registry arrays
+    nman = len(used)
+    slot_of = {g: k for k, g in enumerate(used)}
+    gslot = np.full(model.ngeom, -1, np.int64)
+    packed = []
+    tree_tab = np.zeros(3 * nman, np.int64)
+    for g, k in slot_of.items():
+        gslot[g] = k
+        N = pack(handle.trees[_geom_name(model, g)])
+        packed.append(N)
+        tree_tab[3 * k] = N.ctypes.data
+        tree_tab[3 * k + 1] = N.shape[0]
+    ns = max(stack_size(a, b) for a in packed for b in packed)
+    cap = np.zeros(nman * nman, np.int64)
+    off = np.zeros(nman * nman, np.float64)
+    slots = set()
+    for a, b in pairs:
+        c = min(mujoco.mj_maxContact(model, a, b, 0), mujoco.mj_maxContact(model, a, b, 1))
+        if cfg.contacts is not None:
+            c = min(c, int(cfg.contacts))
+        if c < 1:
+            continue
+        eps = handle.trees[_geom_name(model, a)].error_bound + handle.trees[_geom_name(model, b)].error_bound
+        if cfg.offset == "none":
+            o = 0.0
+        elif cfg.offset == "mean":
+            o = gap[a] + gap[b]
+        else:
+            o = float(cfg.offset)
+            if o > eps:
+                warnings.warn(f"mjist_offset {o:g} m exceeds ε1+ε2 = {eps:g} m of {_geom_name(model, a)} ↔ "
+                              f"{_geom_name(model, b)}: contacts will start before the surfaces touch", RuntimeWarning, stacklevel=2)
+        ka, kb = slot_of[a], slot_of[b]
+        cap[ka * nman + kb] = cap[kb * nman + ka] = c
+        off[ka * nman + kb] = off[kb * nman + ka] = o
+        slots.add(registry._slot_of(model.geom_type[a], model.geom_type[b]))
+        handle.pairs.append(PairInfo(_geom_name(model, a), _geom_name(model, b), (a, b), c, o, eps))
+    if not handle.pairs:
+        return handle
+
+    need = int(hook.scratch_bytes(ns, int(cfg.candidates), int(cap.max()))) + 65536
+    if model.narena < 8 * need:
+        raise ConfigError(
+            f"the model's arena ({model.narena} bytes) is too small for the IST scratch ({need} bytes per pair call): "
+            f"raise it with <size memory=\"{max(16, 8 * need // (1 << 20) + 1)}M\"/>"
+        )
+    off_d = abi.data_offsets()
+    abi.verify_offsets(mujoco.MjData(model), off_d)
+    S = int(cfg.state_slots)
+    arrays = {
+        "gslot": gslot, "cap": cap, "trees": tree_tab, "offset": off, "packed": packed,
+        "keys": np.zeros(S, np.int64), "istate": np.zeros(S * hook.IW, np.int64),
+        "fstate": np.zeros(S * hook.FW, np.float64), "counters": np.zeros(hook.N_COUNT, np.int64),
+    }
+    entry = registry.ModelEntry(model, arrays, slots)
+    E = entry.words
+    E[hook.E_NGEOM] = model.ngeom
+    E[hook.E_GSLOT] = gslot.ctypes.data
+    E[hook.E_NMAN] = nman
+    E[hook.E_CAP] = cap.ctypes.data
+    E[hook.E_TREES] = tree_tab.ctypes.data
+    E[hook.E_OFFSET] = off.ctypes.data
+    E[hook.E_XPOS] = off_d["geom_xpos"]
+    E[hook.E_XMAT] = off_d["geom_xmat"]
+    E[hook.E_ALLOC] = abi.fn_address("mj_stackAllocByte")
+    E[hook.E_MARK] = abi.fn_address("mj_markStack")
+    E[hook.E_FREE] = abi.fn_address("mj_freeStack")
+    E[hook.E_KEYS] = arrays["keys"].ctypes.data
+    E[hook.E_NSLOT] = S
+    E[hook.E_ISTATE] = arrays["istate"].ctypes.data
+    E[hook.E_FSTATE] = arrays["fstate"].ctypes.data
+    E[hook.E_STACK] = ns
+    E[hook.E_NCAND] = int(cfg.candidates)
+    E[hook.E_SPLIT] = int(cfg.split_depth)
+    E[hook.E_SKIP] = int(bool(cfg.skip))
+    E[hook.E_COUNT] = arrays["counters"].ctypes.data
+    E[hook.E_NARENA] = off_d["narena"]
+    E[hook.E_PSTACK] = off_d["pstack"]
+    E[hook.E_PARENA] = off_d["parena"]
+    E[hook.E_POOL] = off_d["threadpool"]
+    registry.add(entry)
+    handle._entry = entry
+    return handle
+
+
+def _warn_primitive_pairs(model, wanted: list[int]) -> None:
+    """IST geoms against spheres, capsules, boxes fall back to MuJoCo's convex-hull contacts: say so."""
+    prim = (abi.GEOM_SPHERE, abi.GEOM_CAPSULE, abi.GEOM_BOX, int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_ELLIPSOID))
+    hits = []
+    for a in wanted:
+        for b in range(model.ngeom):
+            if model.geom_type[b] in prim and can_collide(model, a, b):
+                hits.append(f"{_geom_name(model, a)} ↔ {_geom_name(model, b)}")
+    if hits:
+        warnings.warn(
+            "these pairs use MuJoCo's native contacts, which treat the mesh as its convex hull (exact only "
+            "where the primitive meets the hull's surface; planes and height fields are exact): " + ", ".join(hits[:8])
+            + (" ..." if len(hits) > 8 else ""), RuntimeWarning, stacklevel=3)
+
+
+def load_model(path, *, sdf_octree_depth: int | None = SDF_OCTREE_DEPTH, **kwargs) -> tuple[mujoco.MjModel, Handle]:
+    """Compile an MJCF file and attach the IST: ``(model, handle)``.
+
+    Mesh-backed ``sdf`` geoms get a minimal native octree (``sdf_octree_depth``) because the
+    IST answers their pairs; pairs it does not manage would use that coarse octree.
+    Keyword arguments go to ``attach``.
+    """
+    import os
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"MJCF file {path!r} does not exist")
+    spec = mujoco.MjSpec.from_file(path)
+    if sdf_octree_depth is not None:
+        sdf_meshes = {g.meshname for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_SDF and g.meshname}
+        for mesh in spec.meshes:
+            if mesh.name in sdf_meshes and hasattr(mesh, "octree_maxdepth"):
+                mesh.octree_maxdepth = int(sdf_octree_depth)
+    model = spec.compile()
+    return model, attach(model, **kwargs)

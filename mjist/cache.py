@@ -1,0 +1,61 @@
+"""On-disk cache of built trees, keyed by mesh content and build parameters.
+
+A scene's second start loads its trees instead of rebuilding them. The key hashes the
+vertex and face bytes (as MuJoCo compiled them), the build parameters and the tree format
+version, so any change of mesh, scale or parameters builds a new tree; a corrupt or
+foreign entry is rebuilt and overwritten.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import warnings
+
+import numpy as np
+
+from .errors import TreeFileError
+from .tree import FORMAT_VERSION, InnerSphereTree, load_tree
+
+
+def cache_dir(path=None) -> str:
+    """The cache folder: ``path``, else ``$MJIST_CACHE``, else ``$XDG_CACHE_HOME/mjist`` (``~/.cache/mjist``)."""
+    if path is None:
+        path = os.environ.get("MJIST_CACHE") or os.path.join(
+            os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "mjist"
+        )
+    return os.fspath(path)
+
+
+def tree_key(vertices, faces, params: dict) -> str:
+    """Content key of a tree: mesh bytes + build parameters + format version."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(vertices, np.float64).tobytes())
+    h.update(np.ascontiguousarray(faces, np.int64).tobytes())
+    h.update(json.dumps(params, sort_keys=True).encode())
+    h.update(f"format{FORMAT_VERSION}".encode())
+    return h.hexdigest()[:40]
+
+
+def cached_tree(vertices, faces, params: dict, *, folder=None, progress: bool = False, name: str = "") -> tuple[InnerSphereTree, bool]:
+    """Load the tree of ``(vertices, faces)`` built with ``params`` from the cache, or build and store it.
+
+    Returns ``(tree, hit)``. ``params`` are ``mjist.build`` keyword arguments.
+    """
+    from .build import build
+
+    folder = cache_dir(folder)
+    key = tree_key(vertices, faces, params)
+    path = os.path.join(folder, f"{key}.ist.npz")
+    if os.path.exists(path):
+        try:
+            return load_tree(path), True
+        except TreeFileError as exc:
+            warnings.warn(f"rebuilding cached tree{' of ' + name if name else ''}: {exc}", RuntimeWarning, stacklevel=2)
+    tree = build((vertices, faces), progress=progress, **params)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        tree.save(path)
+    except OSError as exc:  # a read-only cache only costs the rebuild next time
+        warnings.warn(f"cannot write the tree cache {folder!r} ({exc}); set MJIST_CACHE to a writable folder", RuntimeWarning, stacklevel=2)
+    return tree, False

@@ -1,0 +1,294 @@
+"""Stage 9: the collision function MuJoCo calls for IST-managed geom pairs (numba cfuncs).
+
+One cfunc per collision-table slot (mesh-mesh, mesh-sdf, sdf-sdf). MuJoCo's narrow phase
+calls it as ``int f(const mjModel* m, mjData* d, mjPreContact* con, int g1, int g2,
+mjtNum margin)``; no Python runs. It looks ``m`` up in the registry (``registry.py`` writes
+it), and for a managed pair:
+
+1. poses of ``g1``, ``g2`` from ``d->geom_xpos/xmat`` (tree frame == MuJoCo's mesh frame);
+2. the motion-bound skip: if last full distance query of this (MjData, pair) minus the
+   relative motion since then still exceeds ``margin + offset``, no contact is possible;
+3. multipoint traversal with threshold ``margin + offset``, seeded by last frame's groups;
+4. the deepest then farthest-apart ``cap`` contacts into ``con`` — never more than the
+   pair's ``mj_maxContact`` (more corrupts MuJoCo's heap);
+5. when nothing is in contact and skipping is on, a backtracking distance query refreshes
+   the skip reference.
+
+Scratch memory comes from MuJoCo's own per-``mjData`` stack (``mj_stackAllocByte``), the
+coherence state from a per-model table of (MjData, pair) slots claimed with an atomic
+compare-and-swap, so several MjData on several threads never share anything writable.
+The state only prunes work: every answer equals a fresh query's (up to exact ties), so
+rollouts are deterministic whatever the threads. Nothing here raises; problems are counted.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import carray, cfunc, njit, types
+
+from . import mjabi as abi
+from . import traverse as tv
+
+# ---- registry layout (shared with registry.py) -----------------------------------------
+MAX_MODELS = 64
+SLOTS = (  # collision-table slots the hook can take over
+    (abi.GEOM_MESH, abi.GEOM_MESH),
+    (abi.GEOM_MESH, abi.GEOM_SDF),
+    (abi.GEOM_SDF, abi.GEOM_SDF),
+)
+ROOT_N = 0  # number of models
+ROOT_ORIG = 1  # original function of slot s at ROOT_ORIG + s
+ROOT_MODELS = 4  # then (model address, entry address) per model
+ROOT_WORDS = ROOT_MODELS + 2 * MAX_MODELS
+
+# model entry (int64 words)
+E_NGEOM, E_GSLOT, E_NMAN, E_CAP, E_TREES, E_OFFSET = 0, 1, 2, 3, 4, 5
+E_XPOS, E_XMAT, E_ALLOC, E_MARK, E_FREE = 6, 7, 8, 9, 10
+E_KEYS, E_NSLOT, E_ISTATE, E_FSTATE = 11, 12, 13, 14
+E_STACK, E_NCAND, E_SPLIT, E_SKIP, E_COUNT = 15, 16, 17, 18, 19
+E_NARENA, E_PSTACK, E_PARENA, E_POOL = 20, 21, 22, 23
+E_WORDS = 32
+
+# persistent state of one (MjData, pair) slot
+KP = 16  # contact groups remembered for next frame
+IW = 4 + 4 * KP  # int words: distance pair (2), n_prev, spare, prev groups (KP x 4)
+FW = 16  # float words: reference pose xf (12), its distance, valid flag, spare
+
+# counters (racy increments from several threads: statistics only)
+C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK = range(8)
+N_COUNT = 8
+
+# status of the managed path
+_NATIVE = -1  # not ours: call MuJoCo's original function
+
+
+@njit(cache=True, inline="always")
+def _model_entry(m):
+    root_addr = abi.registry_root()
+    if root_addr == 0:
+        return 0
+    root = carray(abi.i64_ptr(root_addr), ROOT_WORDS)
+    n = root[ROOT_N]
+    for i in range(min(n, MAX_MODELS)):
+        if root[ROOT_MODELS + 2 * i] == m:
+            return root[ROOT_MODELS + 2 * i + 1]
+    return 0
+
+
+@njit(cache=True, inline="always")
+def _pose(xpos, xmat, g, P):
+    for i in range(3):
+        for j in range(3):
+            P[i, j] = xmat[9 * g + 3 * i + j]
+        P[i, 3] = xpos[3 * g + i]
+    P[3, 0] = 0.0
+    P[3, 1] = 0.0
+    P[3, 2] = 0.0
+    P[3, 3] = 1.0
+
+
+@njit(cache=True, inline="always")
+def _claim_slot(E, d, p, nslot):
+    """Index of the (d, pair) state slot, claimed on first use; -1 when the table is full."""
+    key = d | (p << 48)
+    keys_addr = E[E_KEYS]
+    keys = carray(abi.i64_ptr(keys_addr), nslot)
+    h = ((d >> 4) ^ (p * 2654435761)) % nslot
+    for k in range(nslot):
+        i = (h + k) % nslot
+        cur = keys[i]
+        if cur == key:
+            return i, False
+        if cur == 0:
+            old = abi.cas_i64(keys_addr + 8 * i, 0, key)
+            if old == 0:
+                return i, True
+            if old == key:  # pragma: no cover - only this thread uses this key
+                return i, False
+    return -1, False
+
+
+@njit(cache=True)
+def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
+    """Contacts of a managed pair into ``con``; returns the count (0..cap)."""
+    nman = E[E_NMAN]
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
+    ka = gslot[g1]
+    kb = gslot[g2]
+    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
+    Na = carray(abi.f64_ptr(trees[3 * ka]), (trees[3 * ka + 1], 8))
+    Nb = carray(abi.f64_ptr(trees[3 * kb]), (trees[3 * kb + 1], 8))
+    offset = carray(abi.f64_ptr(E[E_OFFSET]), nman * nman)[p]
+    thr = margin + offset
+
+    # scratch layout (float64 words): Pa, Pb (16 each), xf (12), stack values, cand values,
+    # geom rows, dmin; then int64: stack pairs, candidates, chosen, pair, fallback state
+    ns = E[E_STACK]
+    nc = E[E_NCAND]
+    f = carray(abi.f64_ptr(scratch), 44 + ns + nc * 14 + FW)
+    Pa = f[0:16].reshape((4, 4))
+    Pb = f[16:32].reshape((4, 4))
+    xf = f[32:44]
+    sv = f[44:44 + ns]
+    o = 44 + ns
+    cval = f[o:o + nc]
+    dmin = f[o + nc:o + 2 * nc]
+    geom = f[o + 2 * nc:o + 14 * nc].reshape((nc, 12))
+    fs_local = f[o + 14 * nc:o + 14 * nc + FW]
+    iaddr = scratch + 8 * (44 + ns + nc * 14 + FW)
+    iw = carray(abi.i64_ptr(iaddr), 2 * ns + 4 * nc + cap + 2 + IW)
+    st = iw[0:2 * ns].reshape((ns, 2))
+    cand = iw[2 * ns:2 * ns + 4 * nc].reshape((nc, 4))
+    chosen = iw[2 * ns + 4 * nc:2 * ns + 4 * nc + cap]
+    pair = iw[2 * ns + 4 * nc + cap:2 * ns + 4 * nc + cap + 2]
+    is_local = iw[2 * ns + 4 * nc + cap + 2:2 * ns + 4 * nc + cap + 2 + IW]
+
+    xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
+    xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
+    _pose(xpos, xmat, g1, Pa)
+    _pose(xpos, xmat, g2, Pb)
+    if not tv.relative_pose(Pa, Pb, xf):
+        count[C_BADPOSE] += 1
+        return 0
+
+    # coherence state of this (MjData, pair)
+    nslot = E[E_NSLOT]
+    s, fresh = _claim_slot(E, d, p, nslot)
+    if s >= 0:
+        ist = carray(abi.i64_ptr(E[E_ISTATE] + 8 * IW * s), IW)
+        fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+    else:
+        count[C_STATELESS] += 1
+        ist = is_local
+        fst = fs_local
+        fresh = True
+    if fresh:
+        ist[0] = -1
+        ist[1] = -1
+        ist[2] = 0
+        fst[13] = 0.0
+    na = Na.shape[0]
+    nb = Nb.shape[0]
+    # state is a hint: validate before use (a slot may outlive its MjData)
+    if ist[0] < 0 or ist[0] >= na or ist[1] < 0 or ist[1] >= nb:
+        ist[0] = -1
+        ist[1] = -1
+    n_prev = min(max(ist[2], 0), KP)
+    prev = ist[4:4 + 4 * KP].reshape((KP, 4))
+    for k in range(n_prev):
+        if not (0 <= prev[k, 0] < na and 0 <= prev[k, 1] < nb and 0 <= prev[k, 2] < na and 0 <= prev[k, 3] < nb):
+            n_prev = 0
+            break
+
+    skip = E[E_SKIP] != 0
+    if skip and fst[13] > 0.0:
+        mb = tv.motion_bound(fst[0:12], xf, Nb[0, 0:3], Nb[0, 3])
+        if fst[12] - mb >= thr:
+            count[C_SKIPPED] += 1
+            return 0
+
+    n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[E_SPLIT], thr, prev, n_prev, cand, cval, pair)
+    if code != tv.OK:
+        ist[2] = 0
+        count[C_FALLBACK] += 1
+        return 0
+    keep = min(n, KP)
+    for i in range(keep):
+        for c in range(4):
+            prev[i, c] = cand[i, c]
+    ist[2] = keep
+    if n == 0:
+        if skip:
+            # refresh the skip reference with the true IST distance (backtracking from
+            # last frame's closest pair)
+            if ist[0] >= 0:
+                pair[0] = ist[0]
+                pair[1] = ist[1]
+                best, code, visits = tv.min_distance_backtrack(Na, Nb, xf, st, sv, 0.0, pair, -np.inf)
+            else:
+                best, code, visits = tv.min_distance(Na, Nb, xf, st, sv, np.inf, 0.0, pair, -np.inf)
+            if code == tv.OK:
+                ist[0] = pair[0]
+                ist[1] = pair[1]
+                for k in range(12):
+                    fst[k] = xf[k]
+                fst[12] = best
+                fst[13] = 1.0
+        return 0
+    fst[13] = 0.0
+    k = tv.select_spread(Na, Nb, xf, cand, cval, n, cap, chosen, geom, dmin)
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    for j in range(k):
+        i = chosen[j]
+        g = geom[i]
+        row = out[j]
+        row[0] = cval[i] - offset
+        for r in range(3):
+            row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
+            row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
+            row[7 + r] = 0.0
+    ist[0] = cand[chosen[0], 2]
+    ist[1] = cand[chosen[0], 3]
+    count[C_CONTACT_CALLS] += 1
+    count[C_CONTACTS] += k
+    return k
+
+
+@njit(cache=True, inline="always")
+def scratch_bytes(ns, nc, cap):
+    return 8 * (44 + ns + nc * 14 + FW) + 8 * (2 * ns + 4 * nc + cap + 2 + IW) + 64
+
+
+@njit(cache=True)
+def collide(slot, m, d, con, g1, g2, margin):
+    """The body of every slot's cfunc (``slot`` picks the original function to fall back on)."""
+    e = _model_entry(m)
+    root_addr = abi.registry_root()
+    if e != 0:
+        E = carray(abi.i64_ptr(e), E_WORDS)
+        ngeom = E[E_NGEOM]
+        if 0 <= g1 < ngeom and 0 <= g2 < ngeom:
+            gslot = carray(abi.i64_ptr(E[E_GSLOT]), ngeom)
+            ka = gslot[g1]
+            kb = gslot[g2]
+            if ka >= 0 and kb >= 0:
+                nman = E[E_NMAN]
+                p = ka * nman + kb
+                cap = carray(abi.i64_ptr(E[E_CAP]), nman * nman)[p]
+                if cap > 0:
+                    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+                    count[C_CALLS] += 1
+                    need = scratch_bytes(E[E_STACK], E[E_NCAND], cap)
+                    if abi.load_i64(d + E[E_POOL]) == 0:
+                        free = abi.load_i64(d + E[E_NARENA]) - abi.load_i64(d + E[E_PSTACK]) - abi.load_i64(d + E[E_PARENA])
+                        if free < need + 65536:
+                            count[C_NOSTACK] += 1
+                            return 0
+                    abi.call_with_data(E[E_MARK], d)
+                    raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
+                    k = _managed(E, m, d, con, g1, g2, margin, p, cap, raw)
+                    abi.call_with_data(E[E_FREE], d)
+                    return k
+    root = carray(abi.i64_ptr(root_addr), ROOT_WORDS)
+    return abi.call_collision(root[ROOT_ORIG + slot], m, d, con, g1, g2, margin)
+
+
+_SIG = types.int32(types.int64, types.int64, types.int64, types.int32, types.int32, types.float64)
+
+
+@cfunc(_SIG, cache=True)
+def collide_mesh_mesh(m, d, con, g1, g2, margin):
+    return collide(0, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_mesh_sdf(m, d, con, g1, g2, margin):
+    return collide(1, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_sdf_sdf(m, d, con, g1, g2, margin):
+    return collide(2, m, d, con, g1, g2, margin)
+
+
+CFUNCS = (collide_mesh_mesh, collide_mesh_sdf, collide_sdf_sdf)
