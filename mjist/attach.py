@@ -48,7 +48,7 @@ class Config:
     split_depth: int = 3
     skip: bool = True
     state_slots: int = 256
-    candidates: int = 64
+    candidates: int = 256
     branching: int = 4
     seed: int = 0
 
@@ -272,6 +272,8 @@ class Handle:
             "contacts": int(c[hook.C_CONTACTS]), "skipped": int(c[hook.C_SKIPPED]),
             "stateless": int(c[hook.C_STATELESS]), "no_stack": int(c[hook.C_NOSTACK]),
             "bad_pose": int(c[hook.C_BADPOSE]), "failed": int(c[hook.C_FALLBACK]),
+            "front_calls": int(c[hook.C_FRONT]), "front_refreshes": int(c[hook.C_REFRESH]),
+            "visits": int(c[hook.C_VISITS]), "front_groups": int(c[hook.C_GROUPS]),
         }
 
     def reset_state(self) -> None:
@@ -357,13 +359,17 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     trees = dict(trees or {})
     t0 = time.perf_counter()
     gap = {}
+    by_mesh = {}  # geoms sharing a mesh share its tree
     for g in used:
         name = _geom_name(model, g)
         V, F = mesh_of(model, g)
         if name not in trees:
-            tree, hit = cached_tree(V, F, params, folder=cache_dir, progress=progress, name=name)
-            handle.cache_hits += int(hit)
-            trees[name] = tree
+            mid = int(model.geom_dataid[g])
+            if mid not in by_mesh:
+                tree, hit = cached_tree(V, F, params, folder=cache_dir, progress=progress, name=name)
+                handle.cache_hits += int(hit)
+                by_mesh[mid] = tree
+            trees[name] = by_mesh[mid]
         gap[g] = _mean_gap(trees[name], V, F)
         handle.trees[name] = trees[name]
         handle.geoms[name] = g
@@ -384,6 +390,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     ns = max(stack_size(a, b) for a in packed for b in packed)
     cap = np.zeros(nman * nman, np.int64)
     off = np.zeros(nman * nman, np.float64)
+    eps_pair = np.zeros(nman * nman, np.float64)
     slots = set()
     for a, b in pairs:
         c = min(mujoco.mj_maxContact(model, a, b, 0), mujoco.mj_maxContact(model, a, b, 1))
@@ -404,6 +411,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         ka, kb = slot_of[a], slot_of[b]
         cap[ka * nman + kb] = cap[kb * nman + ka] = c
         off[ka * nman + kb] = off[kb * nman + ka] = o
+        eps_pair[ka * nman + kb] = eps_pair[kb * nman + ka] = eps
         slots.add(registry._slot_of(model.geom_type[a], model.geom_type[b]))
         handle.pairs.append(PairInfo(_geom_name(model, a), _geom_name(model, b), (a, b), c, o, eps))
     if not handle.pairs:
@@ -419,7 +427,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     abi.verify_offsets(mujoco.MjData(model), off_d)
     S = int(cfg.state_slots)
     arrays = {
-        "gslot": gslot, "cap": cap, "trees": tree_tab, "offset": off, "packed": packed,
+        "gslot": gslot, "cap": cap, "trees": tree_tab, "offset": off, "eps": eps_pair, "packed": packed,
         "keys": np.zeros(S, np.int64), "istate": np.zeros(S * hook.IW, np.int64),
         "fstate": np.zeros(S * hook.FW, np.float64), "counters": np.zeros(hook.N_COUNT, np.int64),
     }
@@ -449,6 +457,8 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     E[hook.E_PSTACK] = off_d["pstack"]
     E[hook.E_PARENA] = off_d["parena"]
     E[hook.E_POOL] = off_d["threadpool"]
+    E[hook.E_TIME] = off_d["time"]
+    E[hook.E_EPS] = eps_pair.ctypes.data
     registry.add(entry)
     handle._entry = entry
     return handle

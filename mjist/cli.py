@@ -1,4 +1,4 @@
-"""Command line: ``mjist build MESH [-o OUT] [--max-error E] [--leaves N] [--branching B] [--seed S]``."""
+"""Command line: ``mjist build``, ``mjist info``, ``mjist demo``, ``mjist render``."""
 from __future__ import annotations
 
 import argparse
@@ -77,6 +77,46 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _cmd_demo(args) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from . import demo
+    from .errors import ConfigError, MeshError
+
+    try:
+        return demo.main(scene=args.scene, data=args.data, native=args.native, seconds=args.seconds,
+                         out=args.out_dir, picture=not args.no_picture, max_error=args.max_error, progress=not args.quiet)
+    except (ConfigError, MeshError, FileNotFoundError, ValueError) as exc:
+        print(f"mjist demo: {exc}", file=sys.stderr)
+        return 1
+
+
+def _cmd_render(args) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import mujoco
+
+    from . import demo
+    from .attach import load_model
+    from .errors import ConfigError
+
+    try:
+        model, handle = (mujoco.MjModel.from_xml_path(args.scene), None) if args.native else load_model(args.scene)
+    except (ConfigError, FileNotFoundError, ValueError) as exc:
+        print(f"mjist render: {exc}", file=sys.stderr)
+        return 1
+    d = mujoco.MjData(model)
+    if args.key:
+        k = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, args.key)
+        if k < 0:
+            print(f"mjist render: the scene has no keyframe {args.key!r}", file=sys.stderr)
+            return 1
+        mujoco.mj_resetDataKeyframe(model, d, k)
+    mujoco.mj_forward(model, d)
+    print(demo.render(model, d, args.output))
+    if handle is not None:
+        handle.detach()
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -95,6 +135,22 @@ def main(argv=None) -> int:
     i = sub.add_parser("info", help="print the statistics of a saved tree")
     i.add_argument("tree")
     i.set_defaults(func=_cmd_info)
+    dm = sub.add_parser("demo", help="simulate jaw closure with IST contacts (default: the bundled jaws)")
+    dm.add_argument("--scene", help="MJCF scene (default: models/jaw_closure.xml)")
+    dm.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
+    dm.add_argument("--native", action="store_true", help="MuJoCo's own (convex hull) mesh contacts, for comparison")
+    dm.add_argument("--seconds", type=float, default=0.6, help="simulated time (default 0.6 s)")
+    dm.add_argument("--max-error", type=float, default=None, help="override the scene's mjist_max_error (metres)")
+    dm.add_argument("--out-dir", default="out/demo", help="summary JSON and picture (default out/demo)")
+    dm.add_argument("--no-picture", action="store_true", help="skip the rendering")
+    dm.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    dm.set_defaults(func=_cmd_demo)
+    r = sub.add_parser("render", help="render a scene headless (MUJOCO_GL=egl or osmesa) with its contacts")
+    r.add_argument("scene")
+    r.add_argument("-o", "--output", default="out/render.png")
+    r.add_argument("--key", help="keyframe to show (default: the model's qpos0)")
+    r.add_argument("--native", action="store_true", help="without the IST")
+    r.set_defaults(func=_cmd_render)
     args = p.parse_args(argv)
     t = time.perf_counter()
     rc = args.func(args)

@@ -45,17 +45,24 @@ E_NGEOM, E_GSLOT, E_NMAN, E_CAP, E_TREES, E_OFFSET = 0, 1, 2, 3, 4, 5
 E_XPOS, E_XMAT, E_ALLOC, E_MARK, E_FREE = 6, 7, 8, 9, 10
 E_KEYS, E_NSLOT, E_ISTATE, E_FSTATE = 11, 12, 13, 14
 E_STACK, E_NCAND, E_SPLIT, E_SKIP, E_COUNT = 15, 16, 17, 18, 19
-E_NARENA, E_PSTACK, E_PARENA, E_POOL = 20, 21, 22, 23
+E_NARENA, E_PSTACK, E_PARENA, E_POOL, E_TIME, E_EPS = 20, 21, 22, 23, 24, 25
 E_WORDS = 32
 
 # persistent state of one (MjData, pair) slot
 KP = 16  # contact groups remembered for next frame
-IW = 4 + 4 * KP  # int words: distance pair (2), n_prev, spare, prev groups (KP x 4)
-FW = 16  # float words: reference pose xf (12), its distance, valid flag, spare
+NG = 256  # groups of the motion-bounded front
+I_PAIR, I_NPREV, I_NFRONT, I_PREV = 0, 2, 3, 4
+I_FRONT = I_PREV + 4 * KP
+IW = I_FRONT + 4 * NG
+# float words: distance-skip reference (pose, distance, valid), slot time, front reference
+# (pose, threshold reached, contact threshold, valid), last pose (+ valid)
+F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK = 0, 12, 13, 14, 15, 16, 28, 29, 30, 42
+FW = 44
+SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of ε1+ε2, x last step's motion
 
 # counters (racy increments from several threads: statistics only)
-C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK = range(8)
-N_COUNT = 8
+C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT, C_REFRESH, C_VISITS, C_GROUPS = range(12)
+N_COUNT = 12
 
 # status of the managed path
 _NATIVE = -1  # not ours: call MuJoCo's original function
@@ -151,84 +158,138 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
         count[C_BADPOSE] += 1
         return 0
 
-    # coherence state of this (MjData, pair)
+    # coherence state of this (MjData, pair): only valid along one trajectory (time never
+    # decreases), so a reset or a new MjData at a recycled address starts fresh
     nslot = E[E_NSLOT]
+    now = abi.load_f64(d + E[E_TIME])
     s, fresh = _claim_slot(E, d, p, nslot)
     if s >= 0:
         ist = carray(abi.i64_ptr(E[E_ISTATE] + 8 * IW * s), IW)
         fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+        if not fresh and not (fst[F_TIME] <= now):
+            fresh = True
     else:
         count[C_STATELESS] += 1
         ist = is_local
         fst = fs_local
         fresh = True
     if fresh:
-        ist[0] = -1
-        ist[1] = -1
-        ist[2] = 0
-        fst[13] = 0.0
+        ist[I_PAIR] = -1
+        ist[I_PAIR + 1] = -1
+        ist[I_NPREV] = 0
+        ist[I_NFRONT] = 0
+        fst[F_OK] = 0.0
+        fst[F_FOK] = 0.0
+        fst[F_LOK] = 0.0
+    fst[F_TIME] = now
     na = Na.shape[0]
     nb = Nb.shape[0]
-    # state is a hint: validate before use (a slot may outlive its MjData)
-    if ist[0] < 0 or ist[0] >= na or ist[1] < 0 or ist[1] >= nb:
-        ist[0] = -1
-        ist[1] = -1
-    n_prev = min(max(ist[2], 0), KP)
-    prev = ist[4:4 + 4 * KP].reshape((KP, 4))
-    for k in range(n_prev):
-        if not (0 <= prev[k, 0] < na and 0 <= prev[k, 1] < nb and 0 <= prev[k, 2] < na and 0 <= prev[k, 3] < nb):
-            n_prev = 0
-            break
+    if ist[I_PAIR] < 0 or ist[I_PAIR] >= na or ist[I_PAIR + 1] < 0 or ist[I_PAIR + 1] >= nb:
+        ist[I_PAIR] = -1
+        ist[I_PAIR + 1] = -1
+    n_prev = min(max(ist[I_NPREV], 0), KP)
+    prev = ist[I_PREV:I_PREV + 4 * KP].reshape((KP, 4))
+    front = ist[I_FRONT:I_FRONT + 4 * NG].reshape((NG, 4))
+    eps = carray(abi.f64_ptr(E[E_EPS]), nman * nman)[p]
+
+    # motion of B relative to A since the last call sizes the front's slack
+    step = 0.0
+    if fst[F_LOK] > 0.0:
+        step = tv.motion_bound(fst[F_LXF:F_LXF + 12], xf, Nb[0, 0:3], Nb[0, 3])
+    for k in range(12):
+        fst[F_LXF + k] = xf[k]
+    fst[F_LOK] = 1.0
 
     skip = E[E_SKIP] != 0
-    if skip and fst[13] > 0.0:
-        mb = tv.motion_bound(fst[0:12], xf, Nb[0, 0:3], Nb[0, 3])
-        if fst[12] - mb >= thr:
+    if skip and fst[F_OK] > 0.0:
+        mb = tv.motion_bound(fst[F_REF:F_REF + 12], xf, Nb[0, 0:3], Nb[0, 3])
+        if fst[F_D] - mb >= thr:
             count[C_SKIPPED] += 1
             return 0
 
-    n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[E_SPLIT], thr, prev, n_prev, cand, cval, pair)
+    # the front: at the refresh pose every leaf pair below T0 lay in one of its groups; a
+    # pair below thr now moved by at most mb, so it was below thr + mb < T0 then
+    use_front = False
+    if skip and fst[F_FOK] > 0.0 and fst[F_FTHR] == thr:
+        mb = tv.motion_bound(fst[F_FXF:F_FXF + 12], xf, Nb[0, 0:3], Nb[0, 3])
+        use_front = mb < fst[F_FT0] - thr
+    if use_front:
+        count[C_FRONT] += 1
+        n, code, visits = tv.front_search(Na, Nb, xf, st, sv, front, ist[I_NFRONT], thr, cand, cval, pair)
+    else:
+        for k in range(n_prev):
+            if not (0 <= prev[k, 0] < na and 0 <= prev[k, 1] < nb and 0 <= prev[k, 2] < na and 0 <= prev[k, 3] < nb):
+                n_prev = 0
+                break
+        slack = min(max(SLACK_MOTION * step, SLACK_MIN * eps), SLACK_MAX * eps) if skip else 0.0
+        t0 = thr + slack
+        n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[E_SPLIT], t0, prev, n_prev, cand, cval, pair)
+        fst[F_FOK] = 0.0
+        if code == tv.OK and skip and n < min(NG, cand.shape[0]):
+            count[C_REFRESH] += 1
+            for i in range(n):
+                for c in range(4):
+                    front[i, c] = cand[i, c]
+            ist[I_NFRONT] = n
+            for k in range(12):
+                fst[F_FXF + k] = xf[k]
+            fst[F_FT0] = t0
+            fst[F_FTHR] = thr
+            fst[F_FOK] = 1.0
+        # keep only the contacts (below thr) among the front's groups
+        m = 0
+        for i in range(n):
+            if cval[i] < thr:
+                for c in range(4):
+                    cand[m, c] = cand[i, c]
+                cval[m] = cval[i]
+                m += 1
+        n = m
+    count[C_VISITS] += visits
+    count[C_GROUPS] += ist[I_NFRONT]
     if code != tv.OK:
-        ist[2] = 0
+        ist[I_NPREV] = 0
+        fst[F_FOK] = 0.0
         count[C_FALLBACK] += 1
         return 0
     keep = min(n, KP)
     for i in range(keep):
         for c in range(4):
             prev[i, c] = cand[i, c]
-    ist[2] = keep
+    ist[I_NPREV] = keep
     if n == 0:
-        if skip:
-            # refresh the skip reference with the true IST distance (backtracking from
+        if skip and not use_front:
+            # refresh the far-skip reference with the true IST distance (backtracking from
             # last frame's closest pair)
-            if ist[0] >= 0:
-                pair[0] = ist[0]
-                pair[1] = ist[1]
+            if ist[I_PAIR] >= 0:
+                pair[0] = ist[I_PAIR]
+                pair[1] = ist[I_PAIR + 1]
                 best, code, visits = tv.min_distance_backtrack(Na, Nb, xf, st, sv, 0.0, pair, -np.inf)
             else:
                 best, code, visits = tv.min_distance(Na, Nb, xf, st, sv, np.inf, 0.0, pair, -np.inf)
             if code == tv.OK:
-                ist[0] = pair[0]
-                ist[1] = pair[1]
+                ist[I_PAIR] = pair[0]
+                ist[I_PAIR + 1] = pair[1]
                 for k in range(12):
-                    fst[k] = xf[k]
-                fst[12] = best
-                fst[13] = 1.0
+                    fst[F_REF + k] = xf[k]
+                fst[F_D] = best
+                fst[F_OK] = 1.0
         return 0
-    fst[13] = 0.0
+    fst[F_OK] = 0.0
     k = tv.select_spread(Na, Nb, xf, cand, cval, n, cap, chosen, geom, dmin)
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
     for j in range(k):
         i = chosen[j]
         g = geom[i]
+        tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g)  # robust to deep, thin overlaps
         row = out[j]
         row[0] = cval[i] - offset
         for r in range(3):
             row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
             row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
             row[7 + r] = 0.0
-    ist[0] = cand[chosen[0], 2]
-    ist[1] = cand[chosen[0], 3]
+    ist[I_PAIR] = cand[chosen[0], 2]
+    ist[I_PAIR + 1] = cand[chosen[0], 3]
     count[C_CONTACT_CALLS] += 1
     count[C_CONTACTS] += k
     return k

@@ -129,6 +129,12 @@ def data_offsets() -> dict:
         d = mujoco.MjData(m)
         words = _words(d._address, 65536)  # mjData holds big inline stat arrays (~160 kB)
         off = {name: _find_pointer(d, name, words) for name in _POINTER_FIELDS}
+        d.time = 1234.5678125  # an exactly representable, unlikely value
+        words = _words(d._address, 65536)
+        hits = np.flatnonzero(words == np.array([d.time]).view(np.uint64)[0])
+        if len(hits) != 1:
+            raise MuJoCoABIError("cannot locate mjData.time in this MuJoCo build: use MuJoCo 4.0")
+        off["time"] = int(hits[0]) * 8
         # the arena counters sit at the start of mjData: narena, nbuffer, nplugin, pstack, pbase, parena
         names = [f.name for f in _mj_structs.STRUCTS["mjData"].fields]
         if names[:6] != ["narena", "nbuffer", "nplugin", "pstack", "pbase", "parena"]:
@@ -148,6 +154,9 @@ def verify_offsets(d: mujoco.MjData, off: dict) -> None:
         arr = getattr(d, name)
         if arr.size and int(words[off[name] // 8]) != arr.ctypes.data:
             raise MuJoCoABIError(f"mjData.{name} is not at the probed offset for this model: the MuJoCo build is not the verified one")
+    t = np.array([d.time]).view(np.uint64)[0]
+    if words[off["time"] // 8] != t:
+        raise MuJoCoABIError("mjData.time is not at the probed offset: the MuJoCo build is not the verified one")
     if int(words[0]) != d.narena:
         raise MuJoCoABIError("mjData.narena is not at offset 0: the MuJoCo build is not the verified one")
 
@@ -195,6 +204,14 @@ def load_i64(typingctx, addr):
     def codegen(context, builder, signature, args):
         return builder.load(builder.inttoptr(args[0], _I64.as_pointer()))
     return types.int64(types.int64), codegen
+
+
+@intrinsic
+def load_f64(typingctx, addr):
+    """The double at ``addr``."""
+    def codegen(context, builder, signature, args):
+        return builder.load(builder.inttoptr(args[0], _F64.as_pointer()))
+    return types.float64(types.int64), codegen
 
 
 @intrinsic

@@ -409,6 +409,47 @@ def leaf_geometry(Na, Nb, xf, a, b, out):
     return d - ra - rb
 
 
+CROSS = 0.5  # a pair is "crossed" when its overlap exceeds this fraction of the smaller radius
+
+
+@njit(cache=True)
+def contact_normal(Na, Nb, xf, a, b, out):
+    """Unit contact normal (A→B, A's frame) of leaf pair ``(a, b)`` into ``out[0:3]``.
+
+    The centre-to-centre direction of two balls that overlap by more than about their
+    smaller radius can point backwards (the small ball of B has passed the small ball of
+    A's centre): deep penetration of thin features. Then the direction is taken from the
+    nearest ancestors whose overlap is shallow relative to their size: their centres lie
+    deeper inside each object, so their direction keeps the larger-scale geometry.
+    Returns the number of levels climbed.
+    """
+    climbed = 0
+    while True:
+        bx, by, bz = _to_a(xf, Nb, b)
+        dx = bx - Na[a, 0]
+        dy = by - Na[a, 1]
+        dz = bz - Na[a, 2]
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        ra = Na[a, 3]
+        rb = Nb[b, 3]
+        deep = ra + rb - d > CROSS * min(ra, rb)
+        if (not deep or (a == 0 and b == 0)) and d > 1e-300:
+            out[0] = dx / d
+            out[1] = dy / d
+            out[2] = dz / d
+            return climbed
+        if a == 0 and b == 0:  # concentric roots: any direction separates
+            out[0] = 0.0
+            out[1] = 0.0
+            out[2] = 1.0
+            return climbed
+        if b == 0 or (a != 0 and ra <= rb):
+            a = int(Na[a, PAR])
+        else:
+            b = int(Nb[b, PAR])
+        climbed += 1
+
+
 # --------------------------------------------------------------------------- multipoint
 
 
@@ -493,6 +534,61 @@ def multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev, cand, cval
         cand[k, 2] = pair[0]
         cand[k, 3] = pair[1]
         cval[k] = best
+    return n, OK, visits
+
+
+@njit(cache=True)
+def front_search(Na, Nb, xf, st, sv, front, nf, margin, cand, cval, pair):
+    """``multipoint`` restricted to a list of groups (a *front*), seeded per group.
+
+    ``front[k] = (group a, group b, leaf a, leaf b)``: groups known to hold every leaf pair
+    that can now be below ``margin`` (see the hook's motion-bounded front). Each group's
+    minimum below ``margin`` is searched exactly; a group's seed leaf pair is updated to its
+    new minimum. Candidates as in ``multipoint``. Returns ``(n_candidates, code, visits)``.
+    """
+    cap_cand = cand.shape[0]
+    n = 0
+    visits = 0
+    for k in range(nf):
+        a = front[k, 0]
+        b = front[k, 1]
+        visits += 1
+        root = pair_value(Na, Nb, xf, a, b)
+        if root >= margin:
+            continue
+        best = margin
+        pair[0] = -1
+        pair[1] = -1
+        v = pair_value(Na, Nb, xf, front[k, 2], front[k, 3])
+        if v < best:
+            best = v
+            pair[0] = front[k, 2]
+            pair[1] = front[k, 3]
+        st[0, 0] = a
+        st[0, 1] = b
+        sv[0] = root
+        best, spx, visits = descend_min(Na, Nb, xf, st, sv, 0, 1, best, 0.0, pair, -np.inf, visits)
+        if spx < 0:
+            return n, STACK_FULL, visits
+        if pair[0] < 0:
+            continue
+        front[k, 2] = pair[0]
+        front[k, 3] = pair[1]
+        if n < cap_cand:
+            j = n
+            n += 1
+        else:
+            j = 0
+            for i in range(1, cap_cand):
+                if cval[i] > cval[j]:
+                    j = i
+            if best >= cval[j]:
+                continue
+        cand[j, 0] = a
+        cand[j, 1] = b
+        cand[j, 2] = pair[0]
+        cand[j, 3] = pair[1]
+        cval[j] = best
     return n, OK, visits
 
 

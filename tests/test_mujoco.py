@@ -1,0 +1,351 @@
+"""The MuJoCo hook: IST contacts inside plain mj_step / mj_geomDistance / rollout, against coal."""
+import ctypes
+import os
+import warnings
+
+import mujoco
+import numpy as np
+import pytest
+import trimesh
+from numba import cfunc, types
+from scipy.spatial.transform import Rotation
+
+import mjist
+from mjist import attach as A
+from mjist import jaw as jawmod
+from mjist import mjabi, registry
+from mjist.errors import ConfigError
+
+from conftest import ROOT
+
+PITCH = 0.001  # 1 mm voxels
+
+
+def _comb(teeth=4, tooth=(4, 12), gap=6, base=6, depth=10):
+    """A comb (metres) from a voxel occupancy, surfaced by marching cubes: watertight, non-convex."""
+    w = teeth * tooth[0] + (teeth - 1) * gap
+    occ = np.zeros((w + 2, depth + 2, base + tooth[1] + 2), bool)
+    occ[1:w + 1, 1:depth + 1, 1:base + 1] = True
+    for i in range(teeth):
+        x = 1 + i * (tooth[0] + gap)
+        occ[x:x + tooth[0], 1:depth + 1, base + 1:base + tooth[1] + 1] = True
+    m = trimesh.voxel.VoxelGrid(occ).marching_cubes
+    m.apply_scale(PITCH)
+    m.apply_translation(-m.bounds.mean(axis=0))
+    return m
+
+
+COMB_XML = """
+<mujoco>
+  <option timestep="0.001"/>
+  <custom>
+    <text name="mjist_offset" data="none"/>
+    <numeric name="mjist_max_error" data="0.0004"/>
+    {extra}
+  </custom>
+  <default><geom solref="0.003 1"/></default>
+  <asset>
+    <mesh name="comb" file="{comb}"/>
+  </asset>
+  <worldbody>
+    <geom name="lower" type="{gtype}" mesh="comb"/>
+    <body name="upper" pos="0 0 0" euler="0 180 0">
+      <freejoint/>
+      <geom name="upper" type="{gtype}" mesh="comb"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.fixture(scope="module")
+def comb_file(tmp_path_factory):
+    p = tmp_path_factory.mktemp("comb") / "comb.obj"
+    _comb().export(p)
+    return str(p)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("treecache"))
+
+
+def _model(comb_file, gtype="mesh", extra=""):
+    return mujoco.MjModel.from_xml_string(COMB_XML.format(comb=comb_file, gtype=gtype, extra=extra))
+
+
+def _interlocked(m, d, gap_z=0.0, shift_x=0.0):
+    """Upper comb flipped over the lower one, its teeth in the lower's gaps.
+
+    Lower comb: base z -9..-3 mm, teeth -3..+9, teeth at x ±(3..7), ±(13..17). The flipped
+    upper at height z0 has its teeth down to z0 - 9; shifted 5 mm in x they sit in the gaps
+    with 1 mm on each side, and z0 = 7.5 mm leaves 1.5 mm above and below (gap_z adds to it).
+    """
+    d.qpos[:3] = [0.005 + shift_x, 0.0, 0.0075 + gap_z]
+    d.qpos[3:7] = [0, 0, 1, 0]  # 180° about y (the body's own euler is composed on top)
+    mujoco.mj_forward(m, d)
+
+
+def _pose(d, g):
+    P = np.eye(4)
+    P[:3, :3] = d.geom_xmat[g].reshape(3, 3)
+    P[:3, 3] = d.geom_xpos[g]
+    return P
+
+
+def _coal_pair(m, d):
+    ba = jawmod.coal_bvh(*A.mesh_of(m, 0))
+    bb = jawmod.coal_bvh(*A.mesh_of(m, 1))
+    return jawmod.coal_distance(ba, _pose(d, 0), bb, _pose(d, 1)), jawmod.coal_collides(ba, _pose(d, 0), bb, _pose(d, 1))
+
+
+def test_attach_detach_restores_the_table(comb_file, cache):
+    m = _model(comb_file)
+    assert registry.table_is_original()
+    h = A.attach(m, cache_dir=cache)
+    table = mjabi.collision_table()
+    idx = mjabi.table_index(mjabi.GEOM_MESH, mjabi.GEOM_MESH)
+    assert table[idx] == registry.hook.CFUNCS[0].address
+    assert h.attached and len(h.pairs) == 1 and h.pairs[0].cap == 4
+    h.detach()
+    assert registry.table_is_original() and not h.attached
+    h.detach()  # idempotent
+
+
+def test_nothing_installed_without_managed_pairs(comb_file, cache):
+    xml = COMB_XML.format(comb=comb_file, gtype="mesh", extra="").replace('<freejoint/>', '')
+    m = mujoco.MjModel.from_xml_string(xml)  # both combs static: they can never meet
+    h = A.attach(m, cache_dir=cache)
+    assert h.pairs == [] and h.trees == {} and registry.table_is_original()
+
+
+def test_combs_true_gap_where_hulls_report_deep_contact(comb_file, cache):
+    m = _model(comb_file)
+    d = mujoco.MjData(m)
+    _interlocked(m, d, gap_z=0.0)
+    native = [c.dist for c in d.contact[:d.ncon]]
+    true_d, hit = _coal_pair(m, d)
+    assert not hit and true_d > 0.0007  # interlocked teeth, ~1 mm apart everywhere
+    assert native and min(native) < -0.005  # hulls: centimetre-deep false contact
+    with A.attach(m, cache_dir=cache) as h:
+        mujoco.mj_forward(m, d)
+        assert d.ncon == 0
+        eps = h.pairs[0].error_bound
+        dist = mujoco.mj_geomDistance(m, d, 0, 1, 0.05, None)
+        assert true_d - 1e-9 <= dist <= true_d + eps + 1e-9
+    mujoco.mj_forward(m, d)
+    assert d.ncon > 0  # native again
+
+
+def test_contacts_and_distance_against_coal(comb_file, cache):
+    m = _model(comb_file)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(3)
+    with A.attach(m, cache_dir=cache) as h:
+        eps = h.pairs[0].error_bound
+        ta, tb = h.trees["lower"], h.trees["upper"]
+        q = mjist.Query(ta, tb)
+        ba, bb = (jawmod.coal_bvh(*A.mesh_of(m, g)) for g in (0, 1))
+        checked = 0
+        for _ in range(60):
+            _interlocked(m, d, gap_z=rng.uniform(-0.004, 0.003), shift_x=rng.uniform(-0.002, 0.002))
+            d.qpos[3:7] = (Rotation.from_quat(d.qpos[[4, 5, 6, 3]]) * Rotation.from_rotvec(rng.normal(0, 0.05, 3))).as_quat()[[3, 0, 1, 2]]
+            mujoco.mj_forward(m, d)
+            Pa, Pb = _pose(d, 0), _pose(d, 1)
+            true_d = jawmod.coal_distance(ba, Pa, bb, Pb)
+            hit = jawmod.coal_collides(ba, Pa, bb, Pb)
+            ref = q.distance(Pa, Pb)
+            dist = mujoco.mj_geomDistance(m, d, 0, 1, 0.05, None)
+            if ref.distance > 0:
+                assert dist == pytest.approx(ref.distance, abs=1e-12)  # the slot answers distances too
+                assert true_d - 1e-9 <= dist <= true_d + eps + 1e-9 or hit
+            cons = [c for c in d.contact[:d.ncon]]
+            assert len(cons) <= h.pairs[0].cap
+            if cons:
+                assert hit  # overlapping inner spheres ⇒ the meshes intersect
+                for c in cons:
+                    n = c.frame[:3]
+                    assert abs(np.linalg.norm(n) - 1) < 1e-9 and c.dist <= 0
+                    assert set(c.geom) == {0, 1}
+                checked += 1
+            else:
+                # no sphere overlap: the meshes are closer than ε at most
+                assert (not hit) or ref.distance <= eps
+        assert checked > 5
+
+
+def test_normal_points_from_geom1_to_geom2_for_either_order(comb_file, cache):
+    out = []
+    for swap in (False, True):
+        xml = COMB_XML.format(comb=comb_file, gtype="mesh", extra="")
+        if swap:  # declare the upper comb first: MuJoCo then passes the pair the other way round
+            xml = xml.replace('<geom name="lower" type="mesh" mesh="comb"/>', "")
+            xml = xml.replace("</body>", '</body>\n    <geom name="lower" type="mesh" mesh="comb"/>')
+        m = mujoco.MjModel.from_xml_string(xml)
+        d = mujoco.MjData(m)
+        lower = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "lower")
+        with A.attach(m, cache_dir=cache):
+            d.qpos[:3] = [0.0, 0.0, 0.017]  # tooth tips on tooth tips, 0.5 mm into each other
+            d.qpos[3:7] = [0, 0, 1, 0]
+            mujoco.mj_forward(m, d)
+            assert d.ncon > 0
+            rows = []
+            for c in d.contact[:d.ncon]:
+                n = np.array(c.frame[:3]) * (1 if c.geom[0] == lower else -1)  # as lower → upper
+                assert n[2] > 0.2  # the upper comb sits above: pushing it up separates
+                rows.append([c.dist, *c.pos, *n])
+            assert np.mean([r[6] for r in rows]) > 0.5
+            out.append(np.array(sorted(rows)))
+    assert np.allclose(out[0], out[1], atol=1e-12)
+
+
+@pytest.mark.parametrize("gtype", ["mesh", "sdf"])
+def test_contact_cap_never_exceeded(comb_file, cache, gtype):
+    m = _model(comb_file, gtype=gtype, extra='<numeric name="mjist_contacts" data="50"/>')
+    cap = min(mujoco.mj_maxContact(m, 0, 1, 0), mujoco.mj_maxContact(m, 0, 1, 1))
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    most = 0
+    with A.attach(m, cache_dir=cache) as h:
+        assert h.pairs[0].cap == cap
+        for _ in range(2000):
+            d.qpos[:3] = rng.uniform(-0.015, 0.015, 3)
+            d.qpos[3:7] = Rotation.random(random_state=rng).as_quat()[[3, 0, 1, 2]]
+            mujoco.mj_forward(m, d)  # MuJoCo itself raises past the cap
+            most = max(most, d.ncon)
+            assert d.ncon <= cap
+    assert most >= min(cap, 8)  # deep random overlaps do fill the buffer
+
+
+def test_rollout_with_two_threads_is_bit_identical_to_serial(comb_file, cache):
+    m = _model(comb_file)
+    m.opt.gravity[:] = (0, 0, -9.81)
+    d = mujoco.MjData(m)
+    with A.attach(m, cache_dir=cache):
+        _interlocked(m, d, gap_z=0.006)
+        states = []
+        rng = np.random.default_rng(1)
+        for _ in range(6):
+            d.qpos[0] = 0.005 + rng.uniform(-0.0005, 0.0005)
+            d.qpos[2] = 0.0075  # 1.5 mm above resting on the lower comb
+            d.qvel[:] = rng.normal(0, 0.02, m.nv)
+            s = np.empty(mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+            mujoco.mj_getState(m, d, s, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+            states.append(s)
+        x0 = np.array(states)
+        from mujoco import rollout
+
+        serial, _ = rollout.rollout(m, mujoco.MjData(m), x0, nstep=300)
+        par, _ = rollout.rollout(m, [mujoco.MjData(m), mujoco.MjData(m)], x0, nstep=300)
+        again, _ = rollout.rollout(m, [mujoco.MjData(m), mujoco.MjData(m)], x0, nstep=300)
+        # the upper comb fell and came to rest on the lower one (free fall would be 0.44 m)
+        assert np.all(np.abs(serial[:, -1, 3] - 0.006) < 0.001)
+    assert np.array_equal(serial, par) and np.array_equal(par, again)
+
+
+def test_bad_config_is_named(comb_file, cache):
+    for extra, msg in [
+        ('<text name="mjist_geomz" data="all"/>', "unknown mjist setting"),
+        ('<text name="mjist_offset" data="lots"/>', "mjist_offset"),
+        ('<text name="mjist_mode" data="penalty"/>', "haptic"),
+        ('<numeric name="mjist_contacts" data="0"/>', "mjist_contacts"),
+        ('<numeric name="mjist_max_error" data="-1"/>', "positive"),
+        ('<text name="mjist_max_error" data="1"/>', "<numeric>"),
+        ('<text name="mjist_skip" data="maybe"/>', "true or false"),
+    ]:
+        xml = COMB_XML.format(comb=comb_file, gtype="mesh", extra=extra)
+        if "mjist_offset" in extra:
+            xml = xml.replace('<text name="mjist_offset" data="none"/>', "")
+        if "mjist_max_error" in extra:
+            xml = xml.replace('<numeric name="mjist_max_error" data="0.0004"/>', "")
+        m = mujoco.MjModel.from_xml_string(xml)
+        with pytest.raises(ConfigError, match=msg):
+            A.attach(m, cache_dir=cache)
+    m = _model(comb_file)
+    with pytest.raises(ConfigError, match="not a geom"):
+        A.attach(m, geoms=["nope"], cache_dir=cache)
+    assert registry.table_is_original()
+
+
+def test_foreign_slot_function_is_refused(comb_file, cache):
+    @cfunc(types.int32(types.voidptr, types.voidptr, types.voidptr, types.int32, types.int32, types.float64))
+    def other(m, d, con, g1, g2, margin):
+        return 0
+
+    registry._record_originals()
+    table = mjabi.collision_table()
+    idx = mjabi.table_index(mjabi.GEOM_MESH, mjabi.GEOM_MESH)
+    orig = table[idx]
+    table[idx] = other.address
+    try:
+        with pytest.raises(RuntimeError, match="neither MuJoCo's nor mjist's"):
+            A.attach(_model(comb_file), cache_dir=cache)
+    finally:
+        table[idx] = orig
+    assert registry.table_is_original()
+
+
+def test_tree_cache_hit_and_corrupt_entry_rebuilt(comb_file, tmp_path):
+    m = _model(comb_file)
+    h = A.attach(m, cache_dir=tmp_path)
+    h.detach()
+    assert h.cache_hits == 0
+    files = sorted(tmp_path.glob("*.ist.npz"))
+    assert len(files) == 1  # the two geoms share one mesh: one tree
+    h = A.attach(m, cache_dir=tmp_path)
+    h.detach()
+    assert h.cache_hits == 1
+    files[0].write_bytes(b"not a tree")
+    with pytest.warns(RuntimeWarning, match="rebuilding cached tree"):
+        h = A.attach(m, cache_dir=tmp_path)
+    h.detach()
+    assert mjist.load_tree(files[0]).num_leaves > 0
+
+
+def test_state_changes_speed_not_answers(comb_file, cache):
+    """Coherence state only prunes: the same poses give the same contacts with or without it."""
+    m = _model(comb_file)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(7)
+    poses = [(rng.uniform(-0.006, 0.0), rng.uniform(-0.001, 0.001)) for _ in range(40)]
+    runs = []
+    for skip in ("true", "false"):
+        mm = _model(comb_file, extra=f'<text name="mjist_skip" data="{skip}"/>')
+        dd = mujoco.MjData(mm)
+        with A.attach(mm, cache_dir=cache):
+            out = []
+            for i, (z, x) in enumerate(poses):
+                dd.time = 0.001 * i
+                _interlocked(mm, dd, gap_z=z, shift_x=x)
+                out.append(np.array([[c.dist, *c.pos, *c.frame[:3]] for c in dd.contact[:dd.ncon]]))
+            runs.append(out)
+    for a, b in zip(*runs):
+        assert a.shape == b.shape and np.allclose(a, b, atol=1e-12)
+
+
+def test_jaw_closure_scene_reaches_occlusion(cache):
+    """The bundled scene: the muscles close the jaw onto the teeth near the ground-truth pose."""
+    from mjist.demo import run_closure
+
+    model, h = A.load_model(ROOT / "models" / "jaw_closure.xml", cache_dir=cache)
+    try:
+        assert [p.geom1 for p in h.pairs] == ["maxilla"] and h.pairs[0].cap == 4
+        res = run_closure(model, seconds=0.3, handle=h)
+    finally:
+        h.detach()
+    assert res["final_contacts"] >= 1
+    assert abs(res["final_hinge_deg"]) < 1.0  # teeth stop the closure near the occlusion
+    eps = res["error_bound_mm"]
+    assert -eps <= res["true_distance_mm"] <= eps
+    assert res["hook"]["failed"] == 0 and res["hook"]["no_stack"] == 0
+
+
+def test_scene_file_is_the_generator_output():
+    import json
+
+    from mjist.scenes import jaw_closure_xml
+
+    j = json.loads((ROOT / "models" / "occlusion.json").read_text())
+    xml = jaw_closure_xml("maxilla.obj", "mandible.obj", j["hinge"], np.array(j["mandible_pose"])[:3, 3],
+                          half_width=abs(j["condyles"][0][0]))
+    assert (ROOT / "models" / "jaw_closure.xml").read_text() == xml
