@@ -7,14 +7,22 @@ the error bound ε (every surface point lies within ε of a sphere).
 Query: ``q = mjist.Query(tree_a, tree_b)``; ``q.distance(pose_a, pose_b)``,
 ``q.contacts(...)``, ``q.penetration_volume(...)`` with 4x4 poses, each answer with its
 error bound (true distance ∈ [distance - error_bound, distance]).
+
+MuJoCo: ``model, handle = mjist.load_model("scene.xml")`` (or ``mjist.attach(model)``) makes
+plain ``mujoco.mj_step`` use IST contacts for the model's mesh geom pairs.
 """
+from .attach import Handle, attach, load_model
 from .build import build, sphere_tree
-from .errors import MeshError, TreeFileError
+from .errors import ConfigError, MeshError, TreeFileError
 from .mesh import Mesh, load_mesh
 from .query import ContactResult, DistanceResult, PenetrationResult, Query
 from .tree import FORMAT_VERSION, InnerSphereTree, load_tree
 
 __all__ = [
+    "attach",
+    "load_model",
+    "Handle",
+    "ConfigError",
     "build",
     "sphere_tree",
     "Query",

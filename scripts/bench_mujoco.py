@@ -1,0 +1,184 @@
+"""MuJoCo step time and contact error: IST (mesh and sdf geoms) vs native hull vs native mesh-SDF.
+
+    python scripts/bench_mujoco.py                      # bundled jaws (+ CBCT pair when ../shared is there)
+    python scripts/bench_mujoco.py --pairs bundled --quick
+
+Same scene and motion for every mode (``models/jaw_closure.xml``: the jaw closed from 8° by
+its muscles), one run. Per frame: ``mj_step`` wall time; every ``--every`` frames the exact
+mesh distance from coal at that frame's pose against what the mode reports for the pair
+(IST: ``mj_geomDistance`` with the contact offset added back, i.e. the IST distance d_IST,
+whose interval [d_IST - ε1 - ε2, d_IST] must hold the coal distance; native: its deepest
+contact). Writes ``out/bench_mujoco.{json,md,png}``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from mjist import attach as A
+from mjist import jaw as jawmod
+from mjist.demo import scene_for
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = ROOT.parent / "shared" / "data" / "jaw"
+
+
+def _spec_model(scene: Path, gtype: str, octree: int | None):
+    spec = mujoco.MjSpec.from_file(str(scene))
+    for g in spec.geoms:
+        if g.name in ("maxilla", "mandible") and gtype == "sdf":
+            g.type = mujoco.mjtGeom.mjGEOM_SDF
+    if octree is not None:
+        for mesh in spec.meshes:
+            mesh.octree_maxdepth = octree
+    if gtype == "sdf":
+        spec.option.sdf_initpoints = 50
+    t = time.perf_counter()
+    m = spec.compile()
+    return m, time.perf_counter() - t
+
+
+def _pose(d, g):
+    P = np.eye(4)
+    P[:3, :3] = d.geom_xmat[g].reshape(3, 3)
+    P[:3, 3] = d.geom_xpos[g]
+    return P
+
+
+def run_mode(scene, mode, steps, every, coal_pair):
+    if mode == "ist-mesh":
+        m, t_compile = _spec_model(scene, "mesh", None)
+        h = A.attach(m)
+    elif mode == "ist-sdf":
+        m, t_compile = _spec_model(scene, "sdf", 1)
+        h = A.attach(m)
+    elif mode == "native-hull":
+        m, t_compile = _spec_model(scene, "mesh", None)
+        h = None
+    else:  # native mesh-SDF with MuJoCo's default octree
+        m, t_compile = _spec_model(scene, "sdf", None)
+        h = None
+    gmx = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "maxilla")
+    gmd = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "mandible")
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "open"))
+    d.ctrl[:] = 1.0
+    times = np.empty(steps)
+    err = []
+    ba, bb = coal_pair
+    offset = h.pairs[0].offset if h is not None and h.pairs else 0.0
+    eps = h.pairs[0].error_bound if h is not None and h.pairs else float("nan")
+    for i in range(steps):
+        t = time.perf_counter()
+        mujoco.mj_step(m, d)
+        times[i] = time.perf_counter() - t
+        if i % every == 0:
+            true_d = jawmod.coal_distance(ba, _pose(d, gmx), bb, _pose(d, gmd))
+            hit = jawmod.coal_collides(ba, _pose(d, gmx), bb, _pose(d, gmd))
+            cons = [c.dist for c in d.contact[:d.ncon] if {c.geom1, c.geom2} == {gmx, gmd}]
+            if h is not None:
+                rep = mujoco.mj_geomDistance(m, d, gmx, gmd, 0.01, None) + offset  # d_IST
+            else:
+                rep = min(cons) if cons else float("nan")
+            err.append({"frame": i, "coal": float(true_d), "coal_hit": bool(hit), "reported": float(rep),
+                        "contacts": len(cons)})
+    q = d.qpos.copy()
+    res = {
+        "mode": mode, "compile_s": t_compile, "steps": steps,
+        "step_us_median": float(np.median(times) * 1e6),
+        "step_us_p90": float(np.percentile(times, 90) * 1e6),
+        "step_us_median_closed": float(np.median(times[steps // 2:]) * 1e6),
+        "final_hinge_deg": float(np.degrees(q[0])), "final_protrusion_mm": float(q[1] * 1e3), "final_lateral_mm": float(q[2] * 1e3),
+        "error_bound": eps, "offset": offset, "frames": err,
+    }
+    if h is not None:
+        sep = [e for e in err if e["coal"] > 0 and np.isfinite(e["reported"])]
+        res["bound_violations"] = int(sum(1 for e in sep if not (e["reported"] - eps - 1e-9 <= e["coal"] <= e["reported"] + 1e-9)))
+        res["abs_err_mm_median"] = float(np.median([abs(e["reported"] - e["coal"]) for e in sep]) * 1e3) if sep else None
+        res["abs_err_mm_max"] = float(max(abs(e["reported"] - e["coal"]) for e in sep) * 1e3) if sep else None
+        res["hook"] = h.stats()
+        res["trees"] = {k: {"leaves": t.num_leaves, "eps_mm": t.error_bound * 1e3} for k, t in h.trees.items()}
+        h.detach()
+    else:
+        both = [e for e in err if np.isfinite(e["reported"])]
+        res["false_contact_frames"] = int(sum(1 for e in both if not e["coal_hit"] and e["coal"] > 0))
+        res["median_reported_depth_mm"] = float(np.median([e["reported"] for e in both]) * 1e3) if both else None
+    return res
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--pairs", default="bundled,real")
+    ap.add_argument("--modes", default="ist-mesh,ist-sdf,native-hull,native-sdf")
+    ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--every", type=int, default=10)
+    ap.add_argument("--quick", action="store_true", help="200 steps, no native mesh-SDF")
+    ap.add_argument("--out", default=str(ROOT / "out" / "bench_mujoco"))
+    a = ap.parse_args()
+    if a.quick:
+        a.steps = 200
+        a.modes = a.modes.replace(",native-sdf", "")
+    scenes = {}
+    for p in a.pairs.split(","):
+        if p == "bundled":
+            scenes[p] = ROOT / "models" / "jaw_closure.xml"
+        elif p == "real":
+            if SHARED.exists():
+                scenes[p] = scene_for(SHARED, ROOT / "out" / "scene_real")
+            else:
+                print(f"skip real: {SHARED} not present")
+    results = {"mujoco": mujoco.__version__, "cases": {}}
+    for name, scene in scenes.items():
+        m0 = mujoco.MjModel.from_xml_path(str(scene))
+        coal_pair = tuple(jawmod.coal_bvh(*A.mesh_of(m0, mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_GEOM, g))) for g in ("maxilla", "mandible"))
+        results["cases"][name] = {}
+        for mode in a.modes.split(","):
+            r = run_mode(scene, mode, a.steps, a.every, coal_pair)
+            results["cases"][name][mode] = r
+            print(f"{name:8s} {mode:12s} compile {r['compile_s']:6.1f} s  step median {r['step_us_median']:8.1f} µs "
+                  f"(closed {r['step_us_median_closed']:8.1f})  hinge {r['final_hinge_deg']:+.3f}°  "
+                  + (f"violations {r['bound_violations']} err med/max {r['abs_err_mm_median']}/{r['abs_err_mm_max']} mm"
+                     if "bound_violations" in r else f"false-contact frames {r['false_contact_frames']}"), flush=True)
+    out = Path(a.out)
+    os.makedirs(out.parent, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(results, indent=1))
+    lines = ["| pair | mode | compile s | step µs median | once closed | final hinge ° | bound violations / false contacts | |err| median / max mm |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, case in results["cases"].items():
+        base = case.get("native-hull", {}).get("step_us_median")
+        for mode, r in case.items():
+            viol = r.get("bound_violations", r.get("false_contact_frames"))
+            err = f"{r['abs_err_mm_median']:.3f} / {r['abs_err_mm_max']:.3f}" if r.get("abs_err_mm_median") is not None else "–"
+            lines.append(f"| {name} | {mode} | {r['compile_s']:.1f} | {r['step_us_median']:.1f} | {r['step_us_median_closed']:.1f} | "
+                         f"{r['final_hinge_deg']:+.3f} | {viol} | {err} |")
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results["cases"]), figsize=(6 * len(results["cases"]), 4), squeeze=False)
+    for ax, (name, case) in zip(axes[0], results["cases"].items()):
+        for mode, r in case.items():
+            f = r["frames"]
+            ax.plot([e["frame"] for e in f], [e["reported"] * 1e3 for e in f], label=f"{mode} ({r['step_us_median']:.0f} µs)")
+        f = next(iter(case.values()))["frames"]
+        ax.plot([e["frame"] for e in f], [e["coal"] * 1e3 for e in f], "k--", label="coal (exact, IST-mesh run)")
+        ax.set_xlabel("step")
+        ax.set_ylabel("reported distance / deepest contact (mm)")
+        ax.set_title(f"{name} jaw closure")
+        ax.set_ylim(-2, 3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out.with_suffix(".png"), dpi=120)
+    print(out.with_suffix(".md").read_text())
+
+
+if __name__ == "__main__":
+    main()
