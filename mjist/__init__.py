@@ -11,7 +11,7 @@ error bound (true distance ∈ [distance - error_bound, distance]).
 MuJoCo: ``model, handle = mjist.load_model("scene.xml")`` (or ``mjist.attach(model)``) makes
 plain ``mujoco.mj_step`` use IST contacts for the model's mesh geom pairs.
 """
-from .attach import Handle, attach, load_model
+from .collision_driver import Handle, attach, load_model
 from .build import build, sphere_tree
 from .errors import ConfigError, MeshError, TreeFileError
 from .mesh import Mesh, load_mesh

@@ -95,7 +95,7 @@ def _cmd_render(args) -> int:
     import mujoco
 
     from . import demo
-    from .attach import load_model
+    from .collision_driver import load_model
     from .errors import ConfigError
 
     try:

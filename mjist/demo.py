@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 
 from . import jaw as jawmod
-from .attach import Handle, load_model
+from .collision_driver import Handle, load_model
 from .scenes import jaw_closure_xml
 
 SCENE = jawmod.BUNDLED / "jaw_closure.xml"
@@ -37,7 +37,7 @@ def scene_for(folder, out_dir) -> Path:
 
 
 def _mesh_bvh(model, g):
-    from .attach import mesh_of
+    from .collision_driver import mesh_of
 
     V, F = mesh_of(model, g)
     return jawmod.coal_bvh(V, F)

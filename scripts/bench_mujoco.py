@@ -21,7 +21,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from mjist import attach as A
+from mjist import collision_driver as A
 from mjist import jaw as jawmod
 from mjist.demo import scene_for
 

@@ -11,7 +11,7 @@ from numba import cfunc, types
 from scipy.spatial.transform import Rotation
 
 import mjist
-from mjist import attach as A
+from mjist import collision_driver as A
 from mjist import jaw as jawmod
 from mjist import mjabi, registry
 from mjist.errors import ConfigError

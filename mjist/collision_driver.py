@@ -312,7 +312,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         Keeps working with plain ``mj_step``, the viewer and ``mujoco.rollout``.
     trees : dict, optional
         Prebuilt trees by geom name (in the geom's mesh frame, i.e. built from
-        ``mjist.attach.mesh_of(model, g)``); others are built or loaded from the cache.
+        ``mjist.collision_driver.mesh_of(model, g)``); others are built or loaded from the cache.
     cache_dir : path, optional
         Tree cache folder (default ``$MJIST_CACHE`` or ``~/.cache/mjist``).
     progress : bool
