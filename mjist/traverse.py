@@ -461,6 +461,28 @@ def ancestor_at(N, n, depth):
     return n
 
 
+@njit(cache=True, inline="always")
+def _keep_candidate(cand, cval, n, a, b, pair, best):
+    """Add group ``(a, b)``'s deepest pair; when full, replace the shallowest if this one is deeper."""
+    cap_cand = cand.shape[0]
+    if n < cap_cand:
+        k = n
+        n += 1
+    else:
+        k = 0
+        for i in range(1, cap_cand):
+            if cval[i] > cval[k]:
+                k = i
+        if best >= cval[k]:
+            return n
+    cand[k, 0] = a
+    cand[k, 1] = b
+    cand[k, 2] = pair[0]
+    cand[k, 3] = pair[1]
+    cval[k] = best
+    return n
+
+
 @njit(cache=True)
 def multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev, cand, cval, pair):
     """Candidates for multipoint contacts: the deepest leaf pair of every group.
@@ -519,21 +541,7 @@ def multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev, cand, cval
             return n, STACK_FULL, visits
         if pair[0] < 0:
             continue
-        if n < cap_cand:
-            k = n
-            n += 1
-        else:  # full: replace the shallowest candidate if this one is deeper
-            k = 0
-            for i in range(1, cap_cand):
-                if cval[i] > cval[k]:
-                    k = i
-            if best >= cval[k]:
-                continue
-        cand[k, 0] = a
-        cand[k, 1] = b
-        cand[k, 2] = pair[0]
-        cand[k, 3] = pair[1]
-        cval[k] = best
+        n = _keep_candidate(cand, cval, n, a, b, pair, best)
     return n, OK, visits
 
 
@@ -574,21 +582,7 @@ def front_search(Na, Nb, xf, st, sv, front, nf, margin, cand, cval, pair):
             continue
         front[k, 2] = pair[0]
         front[k, 3] = pair[1]
-        if n < cap_cand:
-            j = n
-            n += 1
-        else:
-            j = 0
-            for i in range(1, cap_cand):
-                if cval[i] > cval[j]:
-                    j = i
-            if best >= cval[j]:
-                continue
-        cand[j, 0] = a
-        cand[j, 1] = b
-        cand[j, 2] = pair[0]
-        cand[j, 3] = pair[1]
-        cval[j] = best
+        n = _keep_candidate(cand, cval, n, a, b, pair, best)
     return n, OK, visits
 
 
