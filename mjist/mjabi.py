@@ -259,7 +259,3 @@ def call_collision(typingctx, fn, m, d, con, g1, g2, margin):
 def set_registry(address: int) -> None:
     """Point the hook at a new registry root (one aligned 8-byte store: atomic for readers)."""
     _CELL.value = int(address)
-
-
-def registry_address() -> int:
-    return int(_CELL.value)

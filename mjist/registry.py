@@ -117,10 +117,6 @@ def remove(entry: ModelEntry) -> None:
         _publish()
 
 
-def attached() -> int:
-    return len(_ENTRIES)
-
-
 def table_is_original() -> bool:
     """Every slot mjist may take over holds MuJoCo's own function."""
     table = abi.collision_table()
