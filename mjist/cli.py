@@ -1,4 +1,4 @@
-"""Command line: ``mjist build``, ``mjist info``, ``mjist demo``, ``mjist render``."""
+"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``."""
 from __future__ import annotations
 
 import argparse
@@ -111,10 +111,25 @@ def _cmd_render(args) -> int:
             return 1
         mujoco.mj_resetDataKeyframe(model, d, k)
     mujoco.mj_forward(model, d)
-    print(demo.render(model, d, args.output))
+    print(demo.render(model, d, args.output, handle=handle, depth=args.spheres))
     if handle is not None:
         handle.detach()
     return 0
+
+
+def _cmd_view(args) -> int:
+    from . import view
+    from .errors import ConfigError, MeshError
+
+    try:
+        return view.view(args.scene, depth=args.spheres, key=args.key, native=args.native, control=args.ctrl,
+                         seconds=args.seconds)
+    except (ConfigError, MeshError, FileNotFoundError, ValueError) as exc:
+        print(f"mjist view: {exc}", file=sys.stderr)
+        return 1
+    except RuntimeError as exc:  # no display: the viewer cannot open a window
+        print(f"mjist view: cannot open the viewer ({exc}); on a headless machine use `mjist render`", file=sys.stderr)
+        return 1
 
 
 def main(argv=None) -> int:
@@ -150,7 +165,16 @@ def main(argv=None) -> int:
     r.add_argument("-o", "--output", default="out/render.png")
     r.add_argument("--key", help="keyframe to show (default: the model's qpos0)")
     r.add_argument("--native", action="store_true", help="without the IST")
+    r.add_argument("--spheres", type=int, default=None, metavar="DEPTH", help="draw the tree spheres at this depth")
     r.set_defaults(func=_cmd_render)
+    v = sub.add_parser("view", help="open MuJoCo's viewer with IST contacts, contact normals and tree spheres")
+    v.add_argument("scene", nargs="?", default=str(MODELS / "jaw_closure.xml"))
+    v.add_argument("--spheres", type=int, default=None, metavar="DEPTH", help="draw the tree spheres at this depth")
+    v.add_argument("--key", help="start from this keyframe (e.g. open)")
+    v.add_argument("--ctrl", type=float, default=None, help="set every actuator's control (1 closes the jaw)")
+    v.add_argument("--seconds", type=float, default=None, help="close after this much simulated time")
+    v.add_argument("--native", action="store_true", help="without the IST")
+    v.set_defaults(func=_cmd_view)
     args = p.parse_args(argv)
     t = time.perf_counter()
     rc = args.func(args)

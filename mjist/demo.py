@@ -94,13 +94,20 @@ def run_closure(model, *, seconds: float = 0.6, handle: Handle | None = None) ->
     return res
 
 
-def render(model, d, out, size=(1500, 500)) -> str:
-    """Front, side and occlusal views of the scene with contact points drawn."""
+def render(model, d, out, size=(1500, 500), *, handle: Handle | None = None, depth: int | None = None) -> str:
+    """Front, oblique and side close-up views with contacts drawn.
+
+    With ``handle`` the IST contacts are drawn as points with normal arrows and, with
+    ``depth``, the tree spheres at that depth (``mjist.view.overlay``); without it MuJoCo
+    draws its own contact points.
+    """
+    from .view import overlay
+
     w, h = size
-    r = mujoco.Renderer(model, h, w // 3)
+    r = mujoco.Renderer(model, h, w // 3, max_geom=20000)
     try:
         opt = mujoco.MjvOption()
-        opt.flags[mujoco.mjtVisFlag.mjVIS_CONTACTPOINT] = True
+        opt.flags[mujoco.mjtVisFlag.mjVIS_CONTACTPOINT] = handle is None
         model.vis.scale.contactwidth = 0.04
         model.vis.scale.contactheight = 0.01
         centre = d.geom_xpos.mean(axis=0)
@@ -115,6 +122,7 @@ def render(model, d, out, size=(1500, 500)) -> str:
             cam.azimuth = az
             cam.elevation = el
             r.update_scene(d, camera=cam, scene_option=opt)
+            overlay(r.scene, model, d, handle, depth=depth)
             views.append(r.render())
     finally:
         r.close()
@@ -164,7 +172,7 @@ def main(scene=None, data=None, native=False, seconds=0.6, out="out/demo", pictu
     (out / f"closure_{tag}.json").write_text(json.dumps(res, indent=2))
     if picture:
         try:
-            print(f"picture       {render(model, d, out / f'closure_{tag}.png')}")
+            print(f"picture       {render(model, d, out / f'closure_{tag}.png', handle=handle)}")
         except Exception as exc:  # no GL on this machine: the numbers still stand
             print(f"picture       skipped ({type(exc).__name__}: {exc}); set MUJOCO_GL=egl or osmesa")
     if handle is not None:
