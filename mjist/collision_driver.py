@@ -17,6 +17,7 @@ can be overridden by ``attach`` keyword arguments:
       <text    name="mjist_mode"        data="constraint"/>
       <numeric name="mjist_split_depth" data="3"/>
       <text    name="mjist_skip"        data="true"/>
+      <text    name="mjist_primitives"  data="ist"/>     <!-- or native: hull contacts -->
     </custom>
 """
 from __future__ import annotations
@@ -28,6 +29,7 @@ from dataclasses import asdict, dataclass, field
 import mujoco
 import numpy as np
 
+from . import collision_primitive as cp
 from . import mjabi as abi
 from .errors import ConfigError
 
@@ -51,6 +53,7 @@ class Config:
     candidates: int = 256
     branching: int = 4
     seed: int = 0
+    primitives: str = "ist"
 
     def validate(self) -> "Config":
         if self.mode not in _MODES:
@@ -76,6 +79,9 @@ class Config:
             raise ConfigError(f"mjist_split_depth={self.split_depth} must be between 0 and 16")
         if not 1 <= int(self.state_slots) <= 1 << 20:
             raise ConfigError(f"mjist_state_slots={self.state_slots} must be between 1 and 2^20")
+        if self.primitives not in ("ist", "native"):
+            raise ConfigError(f"mjist_primitives={self.primitives!r} must be 'ist' (leaf spheres against the primitive) "
+                              "or 'native' (MuJoCo's convex-hull contacts)")
         if not 1 <= int(self.candidates) <= 4096:
             raise ConfigError(f"mjist_candidates={self.candidates} must be between 1 and 4096")
         return self
@@ -94,6 +100,7 @@ _KEYS = {
     "mjist_candidates": ("candidates", "numeric"),
     "mjist_branching": ("branching", "numeric"),
     "mjist_seed": ("seed", "numeric"),
+    "mjist_primitives": ("primitives", "text"),
 }
 
 
@@ -237,6 +244,7 @@ class Handle:
     geoms: dict[str, int] = field(default_factory=dict)
     trees: dict[str, object] = field(default_factory=dict)
     pairs: list[PairInfo] = field(default_factory=list)
+    primitive_pairs: list[PairInfo] = field(default_factory=list)  # geom1 = the primitive
     build_seconds: float = 0.0
     cache_hits: int = 0
     _entry: object = None
@@ -274,6 +282,7 @@ class Handle:
             "bad_pose": int(c[hook.C_BADPOSE]), "failed": int(c[hook.C_FALLBACK]),
             "front_calls": int(c[hook.C_FRONT]), "front_refreshes": int(c[hook.C_REFRESH]),
             "visits": int(c[hook.C_VISITS]), "front_groups": int(c[hook.C_GROUPS]),
+            "primitive_calls": int(c[hook.C_PRIM_CALLS]), "primitive_contacts": int(c[hook.C_PRIM_CONTACTS]),
         }
 
     def reset_state(self) -> None:
@@ -290,6 +299,9 @@ class Handle:
         for p in self.pairs:
             lines.append(f"  {p.geom1} ↔ {p.geom2}: ≤ {p.cap} contacts, offset {p.offset * 1e3:.3f} mm, "
                          f"ε1+ε2 {p.error_bound * 1e3:.3f} mm")
+        for p in self.primitive_pairs:
+            lines.append(f"  {p.geom1} (primitive) ↔ {p.geom2}: ≤ {p.cap} contacts, offset {p.offset * 1e3:.3f} mm, "
+                         f"ε {p.error_bound * 1e3:.3f} mm")
         return "\n".join(lines)
 
 
@@ -346,11 +358,15 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     abi.check_version()
     wanted = managed_geoms(model, cfg)
     pairs = [(a, b) for i, a in enumerate(wanted) for b in wanted[i + 1:] if can_collide(model, a, b)]
+    prim_pairs = []  # (primitive geom, mesh geom)
+    if cfg.primitives == "ist":
+        prim_pairs = [(b, a) for a in wanted if model.geom_type[a] == abi.GEOM_MESH for b in range(model.ngeom)
+                      if model.geom_type[b] in cp.TYPES and can_collide(model, a, b)]
     handle = Handle(model=model, config=cfg)
-    _warn_primitive_pairs(model, wanted)
-    if not pairs:
+    _warn_primitive_pairs(model, wanted, cfg.primitives == "ist")
+    if not pairs and not prim_pairs:
         return handle
-    used = sorted({g for p in pairs for g in p})
+    used = sorted({g for p in pairs for g in p} | {a for _, a in prim_pairs})
     if len(used) > 181:
         raise ConfigError(f"{len(used)} IST geoms can meet: at most 181 are supported per model (use mjist_geoms to pick)")
 
@@ -387,7 +403,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         packed.append(N)
         tree_tab[3 * k] = N.ctypes.data
         tree_tab[3 * k + 1] = N.shape[0]
-    ns = max(stack_size(a, b) for a in packed for b in packed)
+    ns = max([stack_size(a, b) for a in packed for b in packed] + [cp.stack_size(a) for a in packed])
     cap = np.zeros(nman * nman, np.int64)
     off = np.zeros(nman * nman, np.float64)
     eps_pair = np.zeros(nman * nman, np.float64)
@@ -414,10 +430,33 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         eps_pair[ka * nman + kb] = eps_pair[kb * nman + ka] = eps
         slots.add(registry._slot_of(model.geom_type[a], model.geom_type[b]))
         handle.pairs.append(PairInfo(_geom_name(model, a), _geom_name(model, b), (a, b), c, o, eps))
-    if not handle.pairs:
+    prims = sorted({b for b, _ in prim_pairs})
+    prim_of = {b: i for i, b in enumerate(prims)}
+    gprim = np.full(model.ngeom, -1, np.int64)
+    prim_tab = np.zeros((max(len(prims), 1), 4), np.float64)
+    pcap = np.zeros(max(len(prims), 1) * nman, np.int64)
+    poff = np.zeros(max(len(prims), 1) * nman, np.float64)
+    for b, i in prim_of.items():
+        gprim[b] = i
+        prim_tab[i] = [model.geom_type[b], *model.geom_size[b]]
+    for b, a in prim_pairs:
+        c = min(mujoco.mj_maxContact(model, b, a, 0), mujoco.mj_maxContact(model, b, a, 1))
+        if cfg.contacts is not None:
+            c = min(c, int(cfg.contacts))
+        if c < 1:
+            continue
+        eps = handle.trees[_geom_name(model, a)].error_bound
+        o = 0.0 if cfg.offset == "none" else gap[a] if cfg.offset == "mean" else float(cfg.offset)
+        i, k = prim_of[b], slot_of[a]
+        pcap[i * nman + k] = c
+        poff[i * nman + k] = o
+        slots.add(registry._slot_of(model.geom_type[b], model.geom_type[a]))
+        handle.primitive_pairs.append(PairInfo(_geom_name(model, b), _geom_name(model, a), (b, a), c, o, eps))
+    if not handle.pairs and not handle.primitive_pairs:
         return handle
 
-    need = int(hook.scratch_bytes(ns, int(cfg.candidates), int(cap.max()))) + 65536
+    cmax = int(max(cap.max(), pcap.max()))
+    need = int(max(hook.scratch_bytes(ns, int(cfg.candidates), cmax), hook.prim_scratch_bytes(ns, int(cfg.candidates), cmax))) + 65536
     if model.narena < 8 * need:
         raise ConfigError(
             f"the model's arena ({model.narena} bytes) is too small for the IST scratch ({need} bytes per pair call): "
@@ -430,6 +469,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         "gslot": gslot, "cap": cap, "trees": tree_tab, "offset": off, "eps": eps_pair, "packed": packed,
         "keys": np.zeros(S, np.int64), "istate": np.zeros(S * hook.IW, np.int64),
         "fstate": np.zeros(S * hook.FW, np.float64), "counters": np.zeros(hook.N_COUNT, np.int64),
+        "gprim": gprim, "prim": prim_tab, "pcap": pcap, "poff": poff,
     }
     entry = registry.ModelEntry(model, arrays, slots)
     E = entry.words
@@ -459,22 +499,33 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     E[hook.E_POOL] = off_d["threadpool"]
     E[hook.E_TIME] = off_d["time"]
     E[hook.E_EPS] = eps_pair.ctypes.data
+    E[hook.E_GPRIM] = gprim.ctypes.data
+    E[hook.E_NPRIM] = len(prims)
+    E[hook.E_PRIM] = prim_tab.ctypes.data
+    E[hook.E_PCAP] = pcap.ctypes.data
+    E[hook.E_POFF] = poff.ctypes.data
     registry.add(entry)
     handle._entry = entry
     return handle
 
 
-def _warn_primitive_pairs(model, wanted: list[int]) -> None:
-    """IST geoms against spheres, capsules, boxes fall back to MuJoCo's convex-hull contacts: say so."""
+def _warn_primitive_pairs(model, wanted: list[int], ist: bool) -> None:
+    """Say which IST geom ↔ primitive pairs keep MuJoCo's convex-hull contacts."""
     prim = (abi.GEOM_SPHERE, abi.GEOM_CAPSULE, abi.GEOM_BOX, int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_ELLIPSOID))
     hits = []
     for a in wanted:
         for b in range(model.ngeom):
-            if model.geom_type[b] in prim and can_collide(model, a, b):
-                hits.append(f"{_geom_name(model, a)} ↔ {_geom_name(model, b)}")
+            t = model.geom_type[b]
+            if t not in prim or not can_collide(model, a, b):
+                continue
+            if ist and t in cp.TYPES and model.geom_type[a] == abi.GEOM_MESH:
+                continue  # answered by the leaf spheres
+            hits.append(f"{_geom_name(model, a)} ↔ {_geom_name(model, b)}")
     if hits:
+        why = ("ellipsoids and sdf-type geoms keep MuJoCo's native contacts" if ist
+               else "mjist_primitives='native'")
         warnings.warn(
-            "these pairs use MuJoCo's native contacts, which treat the mesh as its convex hull (exact only "
+            f"these pairs use MuJoCo's native contacts, which treat the mesh as its convex hull ({why}; exact only "
             "where the primitive meets the hull's surface; planes and height fields are exact): " + ", ".join(hits[:8])
             + (" ..." if len(hits) > 8 else ""), RuntimeWarning, stacklevel=3)
 

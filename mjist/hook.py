@@ -1,6 +1,7 @@
 """Stage 9: the collision function MuJoCo calls for IST-managed geom pairs (numba cfuncs).
 
-One cfunc per collision-table slot (mesh-mesh, mesh-sdf, sdf-sdf). MuJoCo's narrow phase
+One cfunc per collision-table slot (mesh-mesh, mesh-sdf, sdf-sdf, and sphere, capsule,
+cylinder, box against mesh: ``collision_primitive``). MuJoCo's narrow phase
 calls it as ``int f(const mjModel* m, mjData* d, mjPreContact* con, int g1, int g2,
 mjtNum margin)``; no Python runs. It looks ``m`` up in the registry (``registry.py`` writes
 it), and for a managed pair:
@@ -25,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import carray, cfunc, njit, types
 
+from . import collision_primitive as cp
 from . import mjabi as abi
 from . import traverse as tv
 
@@ -34,10 +36,14 @@ SLOTS = (  # collision-table slots the hook can take over
     (abi.GEOM_MESH, abi.GEOM_MESH),
     (abi.GEOM_MESH, abi.GEOM_SDF),
     (abi.GEOM_SDF, abi.GEOM_SDF),
+    (cp.SPHERE, abi.GEOM_MESH),
+    (cp.CAPSULE, abi.GEOM_MESH),
+    (cp.CYLINDER, abi.GEOM_MESH),
+    (cp.BOX, abi.GEOM_MESH),
 )
 ROOT_N = 0  # number of models
 ROOT_ORIG = 1  # original function of slot s at ROOT_ORIG + s
-ROOT_MODELS = 4  # then (model address, entry address) per model
+ROOT_MODELS = ROOT_ORIG + len(SLOTS)  # then (model address, entry address) per model
 ROOT_WORDS = ROOT_MODELS + 2 * MAX_MODELS
 
 # model entry (int64 words)
@@ -46,6 +52,8 @@ E_XPOS, E_XMAT, E_ALLOC, E_MARK, E_FREE = 6, 7, 8, 9, 10
 E_KEYS, E_NSLOT, E_ISTATE, E_FSTATE = 11, 12, 13, 14
 E_STACK, E_NCAND, E_SPLIT, E_SKIP, E_COUNT = 15, 16, 17, 18, 19
 E_NARENA, E_PSTACK, E_PARENA, E_POOL, E_TIME, E_EPS = 20, 21, 22, 23, 24, 25
+# primitives: per-geom index into the (nprim, 4) table [type, size0..2], per (primitive, tree) cap and offset
+E_GPRIM, E_NPRIM, E_PRIM, E_PCAP, E_POFF = 26, 27, 28, 29, 30
 E_WORDS = 32
 
 # persistent state of one (MjData, pair) slot
@@ -62,7 +70,8 @@ SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of
 
 # counters (racy increments from several threads: statistics only)
 C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT, C_REFRESH, C_VISITS, C_GROUPS = range(12)
-N_COUNT = 12
+C_PRIM_CALLS, C_PRIM_CONTACTS = 12, 13
+N_COUNT = 14
 
 # status of the managed path
 _NATIVE = -1  # not ours: call MuJoCo's original function
@@ -300,6 +309,103 @@ def scratch_bytes(ns, nc, cap):
     return 8 * (44 + ns + nc * 14 + FW) + 8 * (2 * ns + 4 * nc + cap + 2 + IW) + 64
 
 
+PRIM_F = 50  # fixed float64 words of the primitive path's scratch
+
+
+@njit(cache=True, inline="always")
+def prim_scratch_bytes(ns, nc, cap):
+    return 8 * (PRIM_F + nc * (cp.GEOM_W + 2)) + 8 * (ns + 2 * nc + cap) + 64
+
+
+@njit(cache=True)
+def _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, scratch):
+    """Contacts of tree ``k`` (geom ``gm``) against primitive ``pi`` (geom ``gp``); returns the count.
+
+    ``mesh_first``: MuJoCo passed the mesh as geom1, so the normal (primitive → mesh) flips.
+    """
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    nman = E[E_NMAN]
+    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
+    N = carray(abi.f64_ptr(trees[3 * k]), (trees[3 * k + 1], 8))
+    prim = carray(abi.f64_ptr(E[E_PRIM]), (E[E_NPRIM], 4))
+    offset = carray(abi.f64_ptr(E[E_POFF]), E[E_NPRIM] * nman)[pi * nman + k]
+    ns = E[E_STACK]
+    nc = E[E_NCAND]
+    # scratch (float64): Pm, Pp (16 each), xf (12), q (6), values, dmin, geometry rows;
+    # then int64: stack, candidates (group, leaf), chosen
+    nf = PRIM_F + nc * (cp.GEOM_W + 2)
+    f = carray(abi.f64_ptr(scratch), nf)
+    Pm = f[0:16].reshape((4, 4))
+    Pp = f[16:32].reshape((4, 4))
+    xf = f[32:44]
+    q = f[44:50]
+    cval = f[PRIM_F:PRIM_F + nc]
+    dmin = f[PRIM_F + nc:PRIM_F + 2 * nc]
+    geom = f[PRIM_F + 2 * nc:nf].reshape((nc, cp.GEOM_W))
+    iw = carray(abi.i64_ptr(scratch + 8 * nf), ns + 2 * nc + cap)
+    st = iw[0:ns]
+    cand = iw[ns:ns + 2 * nc].reshape((nc, 2))
+    chosen = iw[ns + 2 * nc:ns + 2 * nc + cap]
+    xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
+    xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
+    _pose(xpos, xmat, gm, Pm)
+    _pose(xpos, xmat, gp, Pp)
+    if not tv.relative_pose(Pp, Pm, xf):  # tree frame -> primitive frame
+        count[C_BADPOSE] += 1
+        return 0
+    n, code, visits = cp.tree_contacts(N, int(prim[pi, 0]), prim[pi, 1], prim[pi, 2], prim[pi, 3], xf,
+                                       margin + offset, E[E_SPLIT], st, cand, cval, geom, q)
+    count[C_VISITS] += visits
+    if code != tv.OK:
+        count[C_FALLBACK] += 1
+        return 0
+    if n == 0:
+        return 0
+    k_out = cp.select_spread(geom, cval, n, cap, chosen, dmin)
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    sign = -1.0 if mesh_first else 1.0
+    for j in range(k_out):
+        i = chosen[j]
+        row = out[j]
+        row[0] = cval[i] - offset
+        for r in range(3):
+            row[1 + r] = Pp[r, 0] * geom[i, 3] + Pp[r, 1] * geom[i, 4] + Pp[r, 2] * geom[i, 5] + Pp[r, 3]
+            row[4 + r] = sign * (Pp[r, 0] * geom[i, 0] + Pp[r, 1] * geom[i, 1] + Pp[r, 2] * geom[i, 2])
+            row[7 + r] = 0.0
+    count[C_PRIM_CONTACTS] += k_out
+    return k_out
+
+
+@njit(cache=True, inline="always")
+def _collide_prim(E, d, con, g1, g2, ka, kb, margin):
+    """The primitive path of ``collide``; -1 when the pair is not ours."""
+    ngeom = E[E_NGEOM]
+    gprim = carray(abi.i64_ptr(E[E_GPRIM]), ngeom)
+    if ka >= 0 and gprim[g2] >= 0:
+        gm, gp, k, pi, mesh_first = g1, g2, ka, gprim[g2], True
+    elif kb >= 0 and gprim[g1] >= 0:
+        gm, gp, k, pi, mesh_first = g2, g1, kb, gprim[g1], False
+    else:
+        return -1
+    nman = E[E_NMAN]
+    cap = carray(abi.i64_ptr(E[E_PCAP]), E[E_NPRIM] * nman)[pi * nman + k]
+    if cap <= 0:
+        return -1
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    count[C_PRIM_CALLS] += 1
+    need = prim_scratch_bytes(E[E_STACK], E[E_NCAND], cap)
+    if abi.load_i64(d + E[E_POOL]) == 0:
+        free = abi.load_i64(d + E[E_NARENA]) - abi.load_i64(d + E[E_PSTACK]) - abi.load_i64(d + E[E_PARENA])
+        if free < need + 65536:
+            count[C_NOSTACK] += 1
+            return 0
+    abi.call_with_data(E[E_MARK], d)
+    raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
+    n = _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, raw)
+    abi.call_with_data(E[E_FREE], d)
+    return n
+
+
 @njit(cache=True)
 def collide(slot, m, d, con, g1, g2, margin):
     """The body of every slot's cfunc (``slot`` picks the original function to fall back on)."""
@@ -330,6 +436,10 @@ def collide(slot, m, d, con, g1, g2, margin):
                     k = _managed(E, m, d, con, g1, g2, margin, p, cap, raw)
                     abi.call_with_data(E[E_FREE], d)
                     return k
+            elif E[E_NPRIM] > 0:
+                k = _collide_prim(E, d, con, g1, g2, ka, kb, margin)
+                if k >= 0:
+                    return k
     root = carray(abi.i64_ptr(root_addr), ROOT_WORDS)
     return abi.call_collision(root[ROOT_ORIG + slot], m, d, con, g1, g2, margin)
 
@@ -352,4 +462,25 @@ def collide_sdf_sdf(m, d, con, g1, g2, margin):
     return collide(2, m, d, con, g1, g2, margin)
 
 
-CFUNCS = (collide_mesh_mesh, collide_mesh_sdf, collide_sdf_sdf)
+@cfunc(_SIG, cache=True)
+def collide_sphere_mesh(m, d, con, g1, g2, margin):
+    return collide(3, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_capsule_mesh(m, d, con, g1, g2, margin):
+    return collide(4, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_cylinder_mesh(m, d, con, g1, g2, margin):
+    return collide(5, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_box_mesh(m, d, con, g1, g2, margin):
+    return collide(6, m, d, con, g1, g2, margin)
+
+
+CFUNCS = (collide_mesh_mesh, collide_mesh_sdf, collide_sdf_sdf,
+          collide_sphere_mesh, collide_capsule_mesh, collide_cylinder_mesh, collide_box_mesh)
