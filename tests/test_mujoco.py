@@ -243,6 +243,26 @@ def test_rollout_with_two_threads_is_bit_identical_to_serial(comb_file, cache):
     assert np.array_equal(serial, par) and np.array_equal(par, again)
 
 
+def test_thread_pool_bound_to_mjdata_gives_identical_steps(comb_file, cache):
+    """``mju_threadpool``: MuJoCo's per-thread stack shards and our CAS slots; same trajectory."""
+    m = _model(comb_file)
+    m.opt.gravity[:] = (0, 0, -9.81)
+    with A.attach(m, cache_dir=cache) as h:
+        runs = []
+        for threads in (0, 2):
+            d = mujoco.MjData(m)
+            if threads:
+                mujoco.mju_threadpool(d, threads)
+            _interlocked(m, d, gap_z=0.006)
+            d.qvel[:] = [0.01, 0.0, 0.0, 0.05, 0.02, 0.0]
+            traj = []
+            for _ in range(300):
+                mujoco.mj_step(m, d)
+                traj.append(np.concatenate([d.qpos, d.qvel, [d.ncon]]))
+            runs.append(np.array(traj))
+        assert h.stats()["no_stack"] == 0 and h.stats()["failed"] == 0
+    assert runs[0][-1, -1] > 0 and np.array_equal(runs[0], runs[1])
+
 def test_bad_config_is_named(comb_file, cache):
     for extra, msg in [
         ('<text name="mjist_geomz" data="all"/>', "unknown mjist setting"),
@@ -349,3 +369,180 @@ def test_scene_file_is_the_generator_output():
     xml = jaw_closure_xml("maxilla.obj", "mandible.obj", j["hinge"], np.array(j["mandible_pose"])[:3, 3],
                           half_width=abs(j["condyles"][0][0]))
     assert (ROOT / "models" / "jaw_closure.xml").read_text() == xml
+
+
+def test_jaw_contacts_against_coal_at_many_poses(cache):
+    """Bundled jaws, 80 poses around the occlusion: distances, overlaps and contact points vs coal."""
+    model, h = A.load_model(ROOT / "models" / "jaw_closure.xml", cache_dir=cache, offset="none")
+    try:
+        gmx, gmd = h.geoms["maxilla"], h.geoms["mandible"]
+        eps = h.pairs[0].error_bound
+        meshes = {g: trimesh.Trimesh(*A.mesh_of(model, g), process=False) for g in (gmx, gmd)}
+        bvh = {g: jawmod.coal_bvh(*A.mesh_of(model, g)) for g in (gmx, gmd)}
+        d = mujoco.MjData(model)
+        occ = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "occlusion")
+        rng = np.random.default_rng(11)
+        touching = separated = 0
+        for _ in range(80):
+            mujoco.mj_resetDataKeyframe(model, d, occ)
+            d.qpos[:3] += [np.radians(rng.uniform(-0.4, 2.0)), rng.uniform(-5e-4, 5e-4), rng.uniform(-5e-4, 5e-4)]
+            mujoco.mj_forward(model, d)
+            Pa, Pb = _pose(d, gmx), _pose(d, gmd)
+            true_d = jawmod.coal_distance(bvh[gmx], Pa, bvh[gmd], Pb)
+            hit = jawmod.coal_collides(bvh[gmx], Pa, bvh[gmd], Pb)
+            dist = mujoco.mj_geomDistance(model, d, gmx, gmd, 0.05, None)
+            cons = [c for c in d.contact[:d.ncon] if {int(c.geom1), int(c.geom2)} == {gmx, gmd}]
+            assert len(cons) <= h.pairs[0].cap
+            if dist > 0:
+                separated += 1
+                assert true_d - 1e-9 <= dist <= true_d + eps + 1e-9
+                assert not cons
+            if cons:
+                touching += 1
+                assert hit  # inner spheres overlap ⇒ the meshes intersect
+                for c in cons:
+                    assert c.dist <= 0 and abs(np.linalg.norm(c.frame[:3]) - 1) < 1e-9
+                    # the contact point lies in both solids, up to the bound
+                    for g, P in ((gmx, Pa), (gmd, Pb)):
+                        local = P[:3, :3].T @ (np.array(c.pos) - P[:3, 3])
+                        assert trimesh.proximity.signed_distance(meshes[g], local[None])[0] >= -eps
+            elif hit:
+                assert true_d == 0.0 and dist <= eps + 1e-9  # a graze thinner than ε
+        assert touching >= 10 and separated >= 10
+    finally:
+        h.detach()
+
+
+def test_overlay_draws_tree_layers_and_contacts(cache):
+    """``mjist view``/``render --spheres``: layer cuts cover each leaf once; the scene never overflows."""
+    from mjist.view import layer, overlay
+
+    model, h = A.load_model(ROOT / "models" / "jaw_closure.xml", cache_dir=cache)
+    try:
+        d = mujoco.MjData(model)
+        mujoco.mj_resetDataKeyframe(model, d, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "occlusion"))
+        mujoco.mj_forward(model, d)
+        for t in h.trees.values():
+            for depth in (0, 2, t.depth):
+                idx = layer(t, depth)
+                covered = np.concatenate([np.arange(t.leaf_start[i], t.leaf_end[i]) for i in idx])
+                assert np.array_equal(np.sort(covered), np.arange(t.num_leaves))
+        scn = mujoco.MjvScene(model, maxgeom=4000)
+        got = overlay(scn, model, d, h, depth=3)
+        expect = sum(layer(t, 3).size for t in h.trees.values())
+        ist = [c for c in d.contact[:d.ncon] if frozenset((c.geom1, c.geom2)) == frozenset(h.pairs[0].ids)]
+        assert got == {"spheres": expect, "spheres_skipped": 0, "contacts": len(ist)} and len(ist) > 0
+        assert scn.ngeom == expect + 2 * len(ist)
+        c = scn.geoms[scn.ngeom - 1]  # the last arrow starts at the last contact point
+        assert np.linalg.norm(np.array(c.pos) - ist[-1].pos) <= 0.03 * float(model.geom_rbound.max())
+        small = mujoco.MjvScene(model, maxgeom=50)
+        got = overlay(small, model, d, h, depth=h.trees["mandible"].depth)
+        assert small.ngeom <= 50 and got["spheres"] == 50 and got["spheres_skipped"] > 0
+    finally:
+        h.detach()
+
+
+PRIM_XML = """
+<mujoco>
+  <option timestep="0.001" gravity="0 0 0"/>
+  <custom><text name="mjist_offset" data="none"/><numeric name="mjist_max_error" data="0.0004"/></custom>
+  <default><geom solref="0.002 1"/></default>
+  <asset><mesh name="comb" file="{comb}"/></asset>
+  <worldbody>
+    <geom name="comb" type="mesh" mesh="comb"/>
+    <body name="probe"><freejoint/><geom name="probe" type="{ptype}" size="{size}"/></body>
+  </worldbody>
+</mujoco>
+"""
+PRIMS = {  # MuJoCo size -> coal shape
+    "sphere": ("0.0015", lambda s: __import__("coal").Sphere(s[0])),
+    "capsule": ("0.001 0.003", lambda s: __import__("coal").Capsule(s[0], 2 * s[1])),
+    "cylinder": ("0.0012 0.003", lambda s: __import__("coal").Cylinder(s[0], 2 * s[1])),
+    "box": ("0.001 0.0015 0.004", lambda s: __import__("coal").Box(2 * s[0], 2 * s[1], 2 * s[2])),
+}
+
+
+@pytest.mark.parametrize("ptype", sorted(PRIMS))
+def test_primitive_probe_between_teeth_against_coal(comb_file, cache, ptype):
+    """A primitive probing the comb's gaps: leaf-sphere contacts, distances inside the bound, normals out of the comb."""
+    size, shape = PRIMS[ptype]
+    m = mujoco.MjModel.from_xml_string(PRIM_XML.format(comb=comb_file, ptype=ptype, size=size))
+    d = mujoco.MjData(m)
+    hull_false = 0
+    native = mujoco.MjData(m)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no hull-fallback warning for these primitives
+        h = A.attach(m, cache_dir=cache)
+    with h:
+        assert [(p.geom1, p.geom2) for p in h.primitive_pairs] == [("probe", "comb")] and not h.pairs
+        eps = h.primitive_pairs[0].error_bound
+        cap = h.primitive_pairs[0].cap
+        bvh = jawmod.coal_bvh(*A.mesh_of(m, 0))
+        comb = trimesh.Trimesh(*A.mesh_of(m, 0), process=False)
+        geo = shape(m.geom_size[1])
+        rng = np.random.default_rng(7)
+        touching = separated = 0
+        for i in range(120):
+            # the gap between teeth at x = ±10 mm (teeth x ±(3..7), ±(13..17)), tooth tops at z = 9 mm
+            x = rng.choice([-10e-3, 10e-3, -5e-3, 5e-3]) + rng.uniform(-2.5e-3, 2.5e-3)
+            d.qpos[:3] = [x, rng.uniform(-3e-3, 3e-3), rng.uniform(0.0, 12e-3)]
+            d.qpos[3:7] = Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_quat()[[3, 0, 1, 2]]
+            mujoco.mj_forward(m, d)
+            Pm, Pp = _pose(d, 0), _pose(d, 1)
+            true_d = jawmod.coal_distance(bvh, Pm, geo, Pp)
+            hit = jawmod.coal_collides(bvh, Pm, geo, Pp)
+            dist = mujoco.mj_geomDistance(m, d, 1, 0, 0.05, None)
+            cons = list(d.contact[:d.ncon])
+            assert len(cons) <= cap
+            if comb.contains((Pm[:3, :3].T @ (Pp[:3, 3] - Pm[:3, 3]))[None])[0]:
+                # the probe's centre is inside the solid comb: coal's triangle-soup distance is
+                # no solid distance there, but the inner spheres see the penetration
+                assert cons and dist < 0
+                continue
+            if dist > 0:
+                separated += 1
+                # coal meets these shapes by GJK (1e-6 tolerance): allow a micrometre
+                assert true_d - 1e-6 <= dist <= true_d + eps + 1e-6
+                assert not cons
+            for c in cons:
+                assert hit and c.dist <= 0  # leaf spheres are inside the comb
+                n = np.array(c.frame[:3])
+                assert abs(np.linalg.norm(n) - 1) < 1e-9
+                # normal from geom1 to geom2 (MuJoCo passes the primitive first): out of the convex
+                # probe; pos lies half the depth inside the probe's surface along it
+                sign = 1.0 if c.geom1 == 1 else -1.0
+                assert sign * float(n @ (np.array(c.pos) - d.geom_xpos[1])) >= 0.5 * c.dist - 1e-12
+                touching += 1
+        assert touching >= 5 and separated >= 20
+    # MuJoCo's own function sees the comb as its hull: a probe inside a gap is a (false) contact
+    for x in (-10e-3, 10e-3):
+        native.qpos[:3] = [x, 0.0, 2e-3]
+        native.qpos[3:7] = [1, 0, 0, 0]
+        mujoco.mj_forward(m, native)
+        hull_false += native.ncon > 0
+    Pm, Pp = _pose(native, 0), _pose(native, 1)
+    assert jawmod.coal_distance(bvh, Pm, geo, Pp) > 0.5e-3 and hull_false == 2
+    with A.attach(m, cache_dir=cache):
+        mujoco.mj_forward(m, native)
+        assert native.ncon == 0  # the IST sees the gap
+
+
+def test_sphere_falls_into_the_gap_between_teeth(comb_file, cache):
+    """Dynamics: a ball dropped over a gap reaches the gap's floor with the IST, rests on the hull natively."""
+    xml = PRIM_XML.format(comb=comb_file, ptype="sphere", size="0.0015").replace('gravity="0 0 0"', 'gravity="0 0 -9.81"')
+    m = mujoco.MjModel.from_xml_string(xml)
+    rest = {}
+    for mode in ("native", "ist"):
+        d = mujoco.MjData(m)
+        d.qpos[:3] = [0.010, 0.0, 0.013]
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            h = A.attach(m, cache_dir=cache, primitives=mode)
+        assert any("convex hull" in str(x.message) for x in w) == (mode == "native")  # the fallback is announced
+        with h:
+            for _ in range(400):
+                mujoco.mj_step(m, d)
+        rest[mode] = float(d.qpos[2])
+    eps = 0.0004
+    assert rest["native"] > 0.0095  # on the hull's lid over the tooth tips (9 mm + radius)
+    assert -0.0015 - 1e-4 <= rest["ist"] <= -0.0015 + eps + 1e-4  # on the gap's floor (-3 mm + radius), within ε
