@@ -1,4 +1,4 @@
-"""MuJoCo step time and contact error: IST (mesh and sdf geoms) vs native hull vs native mesh-SDF.
+"""MuJoCo step time and contact error: IST (mesh and sdf geoms) vs native hull, mesh-SDF and CoACD.
 
     python scripts/bench_mujoco.py                      # bundled jaws (+ CBCT pair when ../shared is there)
     python scripts/bench_mujoco.py --pairs bundled --quick
@@ -9,6 +9,10 @@ mesh distance from coal at that frame's pose against what the mode reports for t
 (IST: ``mj_geomDistance`` with the contact offset added back, i.e. the IST distance d_IST,
 whose interval [d_IST - ε1 - ε2, d_IST] must hold the coal distance; native: its deepest
 contact). Writes ``out/bench_mujoco.{json,md,png}``.
+
+``native-coacd`` (when ``coacd`` is installed): each jaw replaced by its CoACD convex pieces
+(MuJoCo's documented workaround for non-convex meshes), decomposed once and cached in
+``out/coacd/`` by mesh content and threshold; the decomposition time is reported.
 """
 from __future__ import annotations
 
@@ -44,6 +48,60 @@ def _spec_model(scene: Path, gtype: str, octree: int | None):
     return m, time.perf_counter() - t
 
 
+def coacd_pieces(V, F, threshold: float, cache: Path):
+    """CoACD convex pieces of a mesh (cached by content + threshold): list of (V, F), seconds."""
+    import hashlib
+
+    key = hashlib.sha256(np.ascontiguousarray(V, np.float64).tobytes() + np.ascontiguousarray(F, np.int64).tobytes()
+                         + repr((threshold, "off")).encode()).hexdigest()[:20]
+    path = cache / f"{key}.npz"
+    if path.exists():
+        z = np.load(path)
+        n = int(z["n"])
+        return [(z[f"v{i}"], z[f"f{i}"]) for i in range(n)], float(z["seconds"])
+    import coacd
+
+    coacd.set_log_level("error")
+    t = time.perf_counter()
+    # our meshes are validated closed; CoACD's own manifold check rejects multi-shell jaws and
+    # would remesh them on a 50³ grid first, losing the cusps, so its preprocessing is off
+    parts = coacd.run_coacd(coacd.Mesh(np.asarray(V, np.float64), np.asarray(F, np.int32)), threshold=threshold,
+                            preprocess_mode="off", seed=0)
+    sec = time.perf_counter() - t
+    os.makedirs(cache, exist_ok=True)
+    arrays = {"n": len(parts), "seconds": sec}
+    for i, (pv, pf) in enumerate(parts):
+        arrays[f"v{i}"], arrays[f"f{i}"] = np.asarray(pv), np.asarray(pf)
+    np.savez(path, **arrays)
+    return [(np.asarray(pv), np.asarray(pf)) for pv, pf in parts], sec
+
+
+def _coacd_model(scene: Path, threshold: float):
+    """The scene with each jaw's collision geom replaced by its CoACD pieces (visual mesh kept)."""
+    import trimesh
+
+    spec = mujoco.MjSpec.from_file(str(scene))
+    folder = Path(scene).parent / (spec.meshdir or "")
+    seconds, pieces = 0.0, 0
+    for g in [g for g in spec.geoms if g.name in ("maxilla", "mandible")]:
+        mesh = next(m for m in spec.meshes if m.name == g.meshname)
+        src = trimesh.load(folder / mesh.file, force="mesh", process=False)
+        parts, sec = coacd_pieces(src.vertices * np.asarray(mesh.scale), src.faces, threshold, ROOT / "out" / "coacd")
+        seconds += sec
+        body = g.parent
+        for i, (pv, pf) in enumerate(parts):
+            name = f"{g.name}_coacd{i}"
+            spec.add_mesh(name=name, uservert=np.asarray(pv, float).ravel().tolist(), userface=np.asarray(pf, int).ravel().tolist())
+            p = body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, pos=g.pos, quat=g.quat,
+                              contype=g.contype, conaffinity=g.conaffinity, group=3, density=0.0)
+            p.solref, p.solimp, p.friction, p.margin = g.solref, g.solimp, g.friction, g.margin
+            pieces += 1
+        g.contype = g.conaffinity = 0
+    t = time.perf_counter()
+    m = spec.compile()
+    return m, time.perf_counter() - t, seconds, pieces
+
+
 def _pose(d, g):
     P = np.eye(4)
     P[:3, :3] = d.geom_xmat[g].reshape(3, 3)
@@ -51,7 +109,7 @@ def _pose(d, g):
     return P
 
 
-def run_mode(scene, mode, steps, every, coal_pair):
+def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
     if mode == "ist-mesh":
         m, t_compile = _spec_model(scene, "mesh", None)
         h = A.attach(m)
@@ -61,11 +119,15 @@ def run_mode(scene, mode, steps, every, coal_pair):
     elif mode == "native-hull":
         m, t_compile = _spec_model(scene, "mesh", None)
         h = None
+    elif mode == "native-coacd":
+        m, t_compile, t_decomp, npieces = _coacd_model(scene, coacd_threshold)
+        h = None
     else:  # native mesh-SDF with MuJoCo's default octree
         m, t_compile = _spec_model(scene, "sdf", None)
         h = None
     gmx = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "maxilla")
     gmd = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "mandible")
+    jaws = {m.geom_bodyid[gmx], m.geom_bodyid[gmd]}  # CoACD pieces are other geoms of the same bodies
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "open"))
     d.ctrl[:] = 1.0
@@ -81,7 +143,7 @@ def run_mode(scene, mode, steps, every, coal_pair):
         if i % every == 0:
             true_d = jawmod.coal_distance(ba, _pose(d, gmx), bb, _pose(d, gmd))
             hit = jawmod.coal_collides(ba, _pose(d, gmx), bb, _pose(d, gmd))
-            cons = [c.dist for c in d.contact[:d.ncon] if {c.geom1, c.geom2} == {gmx, gmd}]
+            cons = [c.dist for c in d.contact[:d.ncon] if {m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]} == jaws]
             if h is not None:
                 rep = mujoco.mj_geomDistance(m, d, gmx, gmd, 0.01, None) + offset  # d_IST
             else:
@@ -97,6 +159,8 @@ def run_mode(scene, mode, steps, every, coal_pair):
         "final_hinge_deg": float(np.degrees(q[0])), "final_protrusion_mm": float(q[1] * 1e3), "final_lateral_mm": float(q[2] * 1e3),
         "error_bound": eps, "offset": offset, "frames": err,
     }
+    if mode == "native-coacd":
+        res.update(decompose_s=t_decomp, pieces=npieces, coacd_threshold=coacd_threshold)
     if h is not None:
         sep = [e for e in err if e["coal"] > 0 and np.isfinite(e["reported"])]
         res["bound_violations"] = int(sum(1 for e in sep if not (e["reported"] - eps - 1e-9 <= e["coal"] <= e["reported"] + 1e-9)))
@@ -115,15 +179,22 @@ def run_mode(scene, mode, steps, every, coal_pair):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--pairs", default="bundled,real")
-    ap.add_argument("--modes", default="ist-mesh,ist-sdf,native-hull,native-sdf")
+    ap.add_argument("--modes", default="ist-mesh,ist-sdf,native-hull,native-sdf,native-coacd")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--every", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help="200 steps, no native mesh-SDF")
+    ap.add_argument("--coacd-threshold", type=float, default=0.05, help="CoACD concavity threshold (its default 0.05)")
     ap.add_argument("--out", default=str(ROOT / "out" / "bench_mujoco"))
     a = ap.parse_args()
     if a.quick:
         a.steps = 200
         a.modes = a.modes.replace(",native-sdf", "")
+    try:
+        import coacd  # noqa: F401
+    except ImportError:
+        if "native-coacd" in a.modes:
+            print("skip native-coacd: pip install coacd")
+        a.modes = ",".join(x for x in a.modes.split(",") if x != "native-coacd")
     scenes = {}
     for p in a.pairs.split(","):
         if p == "bundled":
@@ -139,12 +210,13 @@ def main():
         coal_pair = tuple(jawmod.coal_bvh(*A.mesh_of(m0, mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_GEOM, g))) for g in ("maxilla", "mandible"))
         results["cases"][name] = {}
         for mode in a.modes.split(","):
-            r = run_mode(scene, mode, a.steps, a.every, coal_pair)
+            r = run_mode(scene, mode, a.steps, a.every, coal_pair, a.coacd_threshold)
             results["cases"][name][mode] = r
+            extra = f"  ({r['pieces']} CoACD pieces, {r['decompose_s']:.0f} s to decompose)" if "pieces" in r else ""
             print(f"{name:8s} {mode:12s} compile {r['compile_s']:6.1f} s  step median {r['step_us_median']:8.1f} µs "
                   f"(closed {r['step_us_median_closed']:8.1f})  hinge {r['final_hinge_deg']:+.3f}°  "
                   + (f"violations {r['bound_violations']} err med/max {r['abs_err_mm_median']}/{r['abs_err_mm_max']} mm"
-                     if "bound_violations" in r else f"false-contact frames {r['false_contact_frames']}"), flush=True)
+                     if "bound_violations" in r else f"false-contact frames {r['false_contact_frames']}") + extra, flush=True)
     out = Path(a.out)
     os.makedirs(out.parent, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(results, indent=1))
