@@ -1,4 +1,4 @@
-"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``."""
+"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``, ``haptic``."""
 from __future__ import annotations
 
 import argparse
@@ -132,6 +132,18 @@ def _cmd_view(args) -> int:
         return 1
 
 
+def _cmd_haptic(args) -> int:
+    from . import haptic
+    from .errors import ConfigError, MeshError
+
+    try:
+        return haptic.main(scene=args.scene, trajectory=args.trajectory, law=args.law, seconds=args.seconds,
+                           out=args.out_dir, progress=not args.quiet, data=args.data)
+    except (ConfigError, MeshError, FileNotFoundError, ValueError, RuntimeError) as exc:
+        print(f"mjist haptic: {exc}", file=sys.stderr)
+        return 1
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -175,6 +187,17 @@ def main(argv=None) -> int:
     v.add_argument("--seconds", type=float, default=None, help="close after this much simulated time")
     v.add_argument("--native", action="store_true", help="without the IST")
     v.set_defaults(func=_cmd_view)
+    hp = sub.add_parser("haptic", help="drive the mandible with a simulated haptic device; log forces, plot them")
+    hp.add_argument("scene", nargs="?", default=None, help="haptic scene (default: models/haptic_jaw.xml)")
+    hp.add_argument("--trajectory", default="chewing",
+                    help="close, lateral_left, lateral_right, protrusion, chewing, press, push, hold, or a CSV file "
+                         "(time, x, y, z, qw, qx, qy, qz)")
+    hp.add_argument("--law", choices=("contacts", "volume"), default=None, help="penalty law (default: the scene's)")
+    hp.add_argument("--seconds", type=float, default=None, help="length of a scripted trajectory")
+    hp.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
+    hp.add_argument("--out-dir", default="out/haptic", help="log (.npz), summary (.json) and plot (.png)")
+    hp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    hp.set_defaults(func=_cmd_haptic)
     args = p.parse_args(argv)
     t = time.perf_counter()
     rc = args.func(args)

@@ -33,7 +33,13 @@ from . import collision_primitive as cp
 from . import mjabi as abi
 from .errors import ConfigError
 
-_MODES = ("constraint",)
+_MODES = ("constraint", "penalty")
+_LAWS = ("contacts", "volume")
+# penalty defaults (see the README's haptic section for the stability reasoning)
+DEFAULT_STIFFNESS = {"contacts": 1.0e4, "volume": 2.0e11}  # N/m per contact group; N/m³
+PENALTY_NORMAL_CLIMB = 2  # penalty normals from the leaf pair's ancestors 2 levels up (no jumps between siblings)
+HUNT_CROSSLEY_ALPHA = 2.0  # s/m: damping = α·stiffness (force ∝ depth·velocity, zero at first touch)
+DEFAULT_COUPLING = (2000.0, None, 2.0, None)  # k_t N/m, c_t N·s/m, k_r N·m/rad, c_r N·m·s/rad (None: critical)
 _TRUE = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
 SDF_OCTREE_DEPTH = 1  # native octree kept minimal for mesh-backed sdf geoms the IST takes over
 
@@ -54,15 +60,30 @@ class Config:
     branching: int = 4
     seed: int = 0
     primitives: str = "ist"
+    penalty: str = "contacts"
+    stiffness: float | None = None
+    damping: float | None = None
+    coupling: str | None = None
+    coupling_gains: object = None
 
     def validate(self) -> "Config":
         if self.mode not in _MODES:
-            if self.mode == "penalty":
-                raise ConfigError(
-                    "mjist_mode='penalty' (penetration-volume forces instead of MuJoCo contacts) belongs to the "
-                    "haptic layer, which this version does not have yet: use mode 'constraint'"
-                )
-            raise ConfigError(f"mjist_mode={self.mode!r} is not one of {_MODES}")
+            raise ConfigError(f"mjist_mode={self.mode!r} must be 'constraint' (MuJoCo contacts) or 'penalty' (forces)")
+        if self.penalty not in _LAWS:
+            raise ConfigError(f"mjist_penalty={self.penalty!r} must be 'contacts' (Σ k·depth·n over contact groups) "
+                              "or 'volume' (k·penetration volume)")
+        for name in ("stiffness", "damping"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"mjist_{name}={v} must be a finite number ≥ 0 (SI units)")
+        if self.coupling is not None and len(str(self.coupling).split()) != 2:
+            raise ConfigError(f"mjist_coupling={self.coupling!r} must name two bodies: 'HANDLE BODY' "
+                              "(a mocap body, then the body it drives)")
+        if self.coupling_gains is not None:
+            g = np.atleast_1d(np.asarray(self.coupling_gains, float))
+            if g.size != 4 or not np.all(np.isfinite(g)) or np.any(g < 0):
+                raise ConfigError(f"mjist_coupling_gains={g.tolist()} needs 4 numbers ≥ 0: k_t (N/m) c_t (N·s/m) "
+                                  "k_r (N·m/rad) c_r (N·m·s/rad)")
         if self.max_error is not None and not (math.isfinite(self.max_error) and self.max_error > 0):
             raise ConfigError(f"mjist_max_error={self.max_error} must be a positive distance in metres (e.g. 0.0003)")
         if self.contacts is not None and not (1 <= int(self.contacts) <= 50):
@@ -101,6 +122,11 @@ _KEYS = {
     "mjist_branching": ("branching", "numeric"),
     "mjist_seed": ("seed", "numeric"),
     "mjist_primitives": ("primitives", "text"),
+    "mjist_penalty": ("penalty", "text"),
+    "mjist_stiffness": ("stiffness", "numeric"),
+    "mjist_damping": ("damping", "numeric"),
+    "mjist_coupling": ("coupling", "text"),
+    "mjist_coupling_gains": ("coupling_gains", "numeric"),
 }
 
 
@@ -129,7 +155,9 @@ def read_config(model, **overrides) -> Config:
         fld, want = _KEYS[name]
         if kind != want:
             raise ConfigError(f"<custom> {name!r} must be a <{want}> element, not <{kind}>")
-        if kind == "numeric":
+        if kind == "numeric" and fld == "coupling_gains":
+            cfg.coupling_gains = value
+        elif kind == "numeric":
             if value.size != 1 or not np.isfinite(value[0]):
                 raise ConfigError(f"<numeric name={name!r}> needs exactly one finite number, got {value.tolist()}")
             v = float(value[0])
@@ -226,6 +254,7 @@ class PairInfo:
     cap: int  # contacts written at most (≤ mj_maxContact)
     offset: float  # subtracted from the IST distance (metres)
     error_bound: float  # ε_1 + ε_2
+    mode: str = "constraint"  # or "penalty": forces from mjist.forces, no MuJoCo contact
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -283,7 +312,55 @@ class Handle:
             "front_calls": int(c[hook.C_FRONT]), "front_refreshes": int(c[hook.C_REFRESH]),
             "visits": int(c[hook.C_VISITS]), "front_groups": int(c[hook.C_GROUPS]),
             "primitive_calls": int(c[hook.C_PRIM_CALLS]), "primitive_contacts": int(c[hook.C_PRIM_CONTACTS]),
+            "over_stiffness_budget": int(c[hook.C_STIFF]),
         }
+
+    def haptic(self, data) -> dict:
+        """Last wrenches ``mjist.forces`` applied for ``data``: per penalty pair and per coupling.
+
+        Pairs: ``force``/``torque`` on geom2's body (world, torque about its centre of mass),
+        ``contacts`` (contact groups, or overlapping leaf pairs for the volume law), ``depth``
+        (deepest, metres), ``volume`` (m³). Couplings: ``force`` at the body's origin and
+        ``torque`` on the body (the device displays their opposite).
+        """
+        from . import forces, hook
+
+        out = {"pairs": {}, "coupling": None, "time": float(data.time)}
+        if self._entry is None:
+            return out
+        keys = self._entry.arrays["keys"]
+        rows = self._entry.arrays["pout"]
+        nman = int(self._entry.words[hook.E_NMAN])
+
+        def row(pk):
+            hit = np.flatnonzero(keys == (int(data._address) | (int(pk) << 48)))
+            return rows[hit[0]] if hit.size else None
+
+        for p in self.pairs:
+            if p.mode != "penalty":
+                continue
+            r = row(self._entry.pair_index[p.ids])
+            if r is not None:
+                out["pairs"][f"{p.geom1}/{p.geom2}"] = {
+                    "force": r[forces.O_F:forces.O_F + 3].copy(), "torque": r[forces.O_T:forces.O_T + 3].copy(),
+                    "contacts": int(r[forces.O_N]), "depth": float(r[forces.O_DEPTH]), "volume": float(r[forces.O_VOL])}
+        if self._entry.arrays["cpl"].shape[0] and self._entry.words[forces.E_NCPL]:
+            r = row(nman * nman)
+            if r is not None:
+                out["coupling"] = {"force": r[forces.O_F:forces.O_F + 3].copy(), "torque": r[forces.O_T:forces.O_T + 3].copy()}
+        return out
+
+    def forget(self, data) -> None:
+        """Forget the coherence and device state kept for ``data`` (e.g. a new MjData that may sit
+        at the address of a freed one; answers of the collision hook never depend on it, the
+        coupling's handle-velocity estimate does for one step)."""
+        from . import hook
+
+        if self._entry is not None:
+            keys = self._entry.arrays["keys"]
+            mine = np.flatnonzero((keys & ((1 << 48) - 1)) == int(data._address))
+            # keys stay (open addressing); a slot whose time is +inf reads as fresh at its next use
+            self._entry.arrays["fstate"].reshape(-1, hook.FW)[mine, hook.F_TIME] = np.inf
 
     def reset_state(self) -> None:
         """Forget every (MjData, pair) coherence slot (answers do not change, only speed)."""
@@ -348,7 +425,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     """
     import time
 
-    from . import hook, registry
+    from . import forces, hook, registry
     from .cache import cached_tree
     from .traverse import pack, stack_size
 
@@ -364,7 +441,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
                       if model.geom_type[b] in cp.TYPES and can_collide(model, a, b)]
     handle = Handle(model=model, config=cfg)
     _warn_primitive_pairs(model, wanted, cfg.primitives == "ist")
-    if not pairs and not prim_pairs:
+    if not pairs and not prim_pairs and cfg.coupling is None:
         return handle
     used = sorted({g for p in pairs for g in p} | {a for _, a in prim_pairs})
     if len(used) > 181:
@@ -403,7 +480,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         packed.append(N)
         tree_tab[3 * k] = N.ctypes.data
         tree_tab[3 * k + 1] = N.shape[0]
-    ns = max([stack_size(a, b) for a in packed for b in packed] + [cp.stack_size(a) for a in packed])
+    ns = max([stack_size(a, b) for a in packed for b in packed] + [cp.stack_size(a) for a in packed] + [2])
     cap = np.zeros(nman * nman, np.int64)
     off = np.zeros(nman * nman, np.float64)
     eps_pair = np.zeros(nman * nman, np.float64)
@@ -425,11 +502,13 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
                 warnings.warn(f"mjist_offset {o:g} m exceeds ε1+ε2 = {eps:g} m of {_geom_name(model, a)} ↔ "
                               f"{_geom_name(model, b)}: contacts will start before the surfaces touch", RuntimeWarning, stacklevel=2)
         ka, kb = slot_of[a], slot_of[b]
+        if cfg.mode == "penalty":
+            c = -1  # the hook writes no contact; forces.py applies the pair's force
         cap[ka * nman + kb] = cap[kb * nman + ka] = c
         off[ka * nman + kb] = off[kb * nman + ka] = o
         eps_pair[ka * nman + kb] = eps_pair[kb * nman + ka] = eps
         slots.add(registry._slot_of(model.geom_type[a], model.geom_type[b]))
-        handle.pairs.append(PairInfo(_geom_name(model, a), _geom_name(model, b), (a, b), c, o, eps))
+        handle.pairs.append(PairInfo(_geom_name(model, a), _geom_name(model, b), (a, b), max(c, 0), o, eps, cfg.mode))
     prims = sorted({b for b, _ in prim_pairs})
     prim_of = {b: i for i, b in enumerate(prims)}
     gprim = np.full(model.ngeom, -1, np.int64)
@@ -452,11 +531,13 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         poff[i * nman + k] = o
         slots.add(registry._slot_of(model.geom_type[b], model.geom_type[a]))
         handle.primitive_pairs.append(PairInfo(_geom_name(model, b), _geom_name(model, a), (b, a), c, o, eps))
-    if not handle.pairs and not handle.primitive_pairs:
+    pen, cpl, pair_index = _force_tables(model, cfg, handle, slot_of, nman)
+    if not handle.pairs and not handle.primitive_pairs and not len(cpl):
         return handle
 
-    cmax = int(max(cap.max(), pcap.max()))
-    need = int(max(hook.scratch_bytes(ns, int(cfg.candidates), cmax), hook.prim_scratch_bytes(ns, int(cfg.candidates), cmax))) + 65536
+    cmax = int(max(cap.max(), pcap.max(), 1))
+    need = int(max(hook.scratch_bytes(ns, int(cfg.candidates), cmax), hook.prim_scratch_bytes(ns, int(cfg.candidates), cmax),
+                   forces.scratch_bytes(ns, int(cfg.candidates)))) + 65536
     if model.narena < 8 * need:
         raise ConfigError(
             f"the model's arena ({model.narena} bytes) is too small for the IST scratch ({need} bytes per pair call): "
@@ -470,6 +551,9 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         "keys": np.zeros(S, np.int64), "istate": np.zeros(S * hook.IW, np.int64),
         "fstate": np.zeros(S * hook.FW, np.float64), "counters": np.zeros(hook.N_COUNT, np.int64),
         "gprim": gprim, "prim": prim_tab, "pcap": pcap, "poff": poff,
+        "pen": np.ascontiguousarray(pen if len(pen) else np.zeros((1, forces.PEN_W))),
+        "cpl": np.ascontiguousarray(cpl if len(cpl) else np.zeros((1, forces.CPL_W))),
+        "pout": np.zeros((S, forces.PO), np.float64),
     }
     entry = registry.ModelEntry(model, arrays, slots)
     E = entry.words
@@ -504,9 +588,91 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     E[hook.E_PRIM] = prim_tab.ctypes.data
     E[hook.E_PCAP] = pcap.ctypes.data
     E[hook.E_POFF] = poff.ctypes.data
+    E[hook.E_NUP] = PENALTY_NORMAL_CLIMB if cfg.mode == "penalty" else 0
+    E[forces.E_NPEN] = len(pen)
+    E[forces.E_PEN] = arrays["pen"].ctypes.data
+    E[forces.E_NCPL] = len(cpl)
+    E[forces.E_CPL] = arrays["cpl"].ctypes.data
+    E[forces.E_POUT] = arrays["pout"].ctypes.data
+    E[forces.E_APPLYFT] = abi.fn_address("mj_applyFT")
+    E[forces.E_OBJVEL] = abi.fn_address("mj_objectVelocity")
+    E[forces.E_QFRCP] = off_d["qfrc_passive"]
+    E[forces.E_BXPOS] = off_d["xpos"]
+    E[forces.E_BXQUAT] = off_d["xquat"]
+    E[forces.E_BXIPOS] = off_d["xipos"]
+    E[forces.E_MOCPOS] = off_d["mocap_pos"]
+    E[forces.E_MOCQUAT] = off_d["mocap_quat"]
+    E[forces.E_NBODY] = model.nbody
+    E[forces.E_NMOCAP] = model.nmocap
+    E[forces.E_DT_NS] = int(round(model.opt.timestep * 1e9))
+    entry.passive = bool(len(pen) or len(cpl))
+    entry.pair_index = pair_index
     registry.add(entry)
     handle._entry = entry
     return handle
+
+
+def _effective_mass(model, body: int, geom: int) -> float:
+    """Smallest mass a point push anywhere on ``geom`` sees on ``body`` (translation + rotation)."""
+    m = float(model.body_subtreemass[body])
+    inertia = float(model.body_inertia[body].min())
+    r = float(model.geom_rbound[geom]) + float(np.linalg.norm(model.geom_pos[geom] - model.body_ipos[body]))
+    return 1.0 / (1.0 / m + r * r / max(inertia, 1e-30))
+
+
+def _force_tables(model, cfg: Config, handle: Handle, slot_of: dict, nman: int):
+    """Rows of ``mjist.forces``: penalty pairs and the virtual coupling (validated)."""
+    from . import forces
+
+    dt = float(model.opt.timestep)
+    pen, pair_index = [], {}
+    for p in handle.pairs:
+        a, b = p.ids
+        ka, kb = slot_of[a], slot_of[b]
+        pair_index[p.ids] = ka * nman + kb
+        if p.mode != "penalty":
+            continue
+        body = [int(model.geom_bodyid[g]) if model.body_weldid[model.geom_bodyid[g]] != 0 else -1 for g in (a, b)]
+        if body[1] < 0:  # forces act on geom2's body: make it the movable one
+            a, b, body = b, a, body[::-1]
+            pair_index[p.ids] = kb * nman + ka
+        if body[1] < 0:
+            continue
+        k = cfg.stiffness if cfg.stiffness is not None else DEFAULT_STIFFNESS[cfg.penalty]
+        c = cfg.damping if cfg.damping is not None else HUNT_CROSSLEY_ALPHA * k
+        law = forces.CONTACTS if cfg.penalty == "contacts" else forces.VOLUME
+        groups = forces.PEN_CAP if cfg.contacts is None else min(int(cfg.contacts), forces.PEN_CAP)
+        # the contact stiffness budget: a push at a point r from the centre of mass moves it
+        # like a mass 1/(1/m + r²/I); explicit steps are stable below 4 m_eff/dt², keep 4x margin
+        m_eff = _effective_mass(model, body[1], b)
+        kmax = m_eff / (dt * dt)
+        pen.append([pair_index[p.ids], a, b, body[0], body[1], law, k, c, kmax, groups])
+        if law == forces.CONTACTS and k > kmax:
+            warnings.warn(f"mjist_stiffness {k:g} N/m per contact group on {_geom_name(model, b)!r} (effective mass {m_eff:.3g} kg "
+                          f"at dt = {dt:g} s) leaves no stability margin: explicit steps are stable while (groups in contact)"
+                          f" × k < {4 * kmax:.3g} N/m; lower it or the timestep", RuntimeWarning, stacklevel=3)
+    cpl = []
+    if cfg.coupling is not None:
+        hname, bname = str(cfg.coupling).split()
+        h = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, hname)
+        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, bname)
+        if h < 0 or model.body_mocapid[h] < 0:
+            raise ConfigError(f"mjist_coupling: {hname!r} must be a mocap body (<body name={hname!r} mocap=\"true\">), the device handle")
+        if b < 0 or model.body_weldid[b] == 0:
+            raise ConfigError(f"mjist_coupling: {bname!r} must be a movable body of the model (e.g. with a <freejoint/>)")
+        mass = float(model.body_subtreemass[b])
+        inertia = float(model.body_inertia[b].min())
+        kt, ct, kr, cr = DEFAULT_COUPLING if cfg.coupling_gains is None else [float(x) for x in np.ravel(cfg.coupling_gains)]
+        ct = 2.0 * math.sqrt(kt * mass) if ct is None else ct  # critical damping
+        cr = 2.0 * math.sqrt(kr * inertia) if cr is None else cr
+        # explicit spring–damper on a mass: stable for k·dt²/m < 4 and c·dt/m < 2; keep a 4x margin
+        for what, kk, cc, mm, unit in (("translational", kt, ct, mass, "kg"), ("rotational", kr, cr, inertia, "kg·m²")):
+            if kk * dt * dt / mm > 1.0 or cc * dt / mm > 0.5:
+                raise ConfigError(
+                    f"mjist_coupling_gains: the {what} coupling (k {kk:g}, c {cc:g}) on {bname!r} ({mm:g} {unit}) is unstable at "
+                    f"dt = {dt:g} s: keep k ≤ {mm / dt / dt:g} and c ≤ {0.5 * mm / dt:g}, or lower the timestep")
+        cpl.append([int(model.body_mocapid[h]), b, kt, ct, kr, cr, *model.body_ipos[b], 0.0])
+    return np.array(pen, np.float64).reshape(-1, forces.PEN_W), np.array(cpl, np.float64).reshape(-1, forces.CPL_W), pair_index
 
 
 def _warn_primitive_pairs(model, wanted: list[int], ist: bool) -> None:

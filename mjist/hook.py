@@ -43,7 +43,8 @@ SLOTS = (  # collision-table slots the hook can take over
 )
 ROOT_N = 0  # number of models
 ROOT_ORIG = 1  # original function of slot s at ROOT_ORIG + s
-ROOT_MODELS = ROOT_ORIG + len(SLOTS)  # then (model address, entry address) per model
+ROOT_PASSIVE = ROOT_ORIG + len(SLOTS)  # the mjcb_passive found before ours (forces.py calls it first)
+ROOT_MODELS = ROOT_PASSIVE + 1  # then (model address, entry address) per model
 ROOT_WORDS = ROOT_MODELS + 2 * MAX_MODELS
 
 # model entry (int64 words)
@@ -54,7 +55,8 @@ E_STACK, E_NCAND, E_SPLIT, E_SKIP, E_COUNT = 15, 16, 17, 18, 19
 E_NARENA, E_PSTACK, E_PARENA, E_POOL, E_TIME, E_EPS = 20, 21, 22, 23, 24, 25
 # primitives: per-geom index into the (nprim, 4) table [type, size0..2], per (primitive, tree) cap and offset
 E_GPRIM, E_NPRIM, E_PRIM, E_PCAP, E_POFF = 26, 27, 28, 29, 30
-E_WORDS = 32
+E_NUP = 31  # levels contact normals climb at least (penalty mode: smooth force directions)
+E_WORDS = 48  # words 32.. belong to forces.py
 
 # persistent state of one (MjData, pair) slot
 KP = 16  # contact groups remembered for next frame
@@ -71,7 +73,8 @@ SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of
 # counters (racy increments from several threads: statistics only)
 C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT, C_REFRESH, C_VISITS, C_GROUPS = range(12)
 C_PRIM_CALLS, C_PRIM_CONTACTS = 12, 13
-N_COUNT = 14
+C_STIFF = 14  # penalty steps whose summed contact stiffness exceeded the explicit stability bound
+N_COUNT = 15
 
 # status of the managed path
 _NATIVE = -1  # not ours: call MuJoCo's original function
@@ -290,7 +293,7 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
     for j in range(k):
         i = chosen[j]
         g = geom[i]
-        tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g)  # robust to deep, thin overlaps
+        tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[E_NUP])  # robust to deep, thin overlaps
         row = out[j]
         row[0] = cval[i] - offset
         for r in range(3):
@@ -422,6 +425,8 @@ def collide(slot, m, d, con, g1, g2, margin):
                 nman = E[E_NMAN]
                 p = ka * nman + kb
                 cap = carray(abi.i64_ptr(E[E_CAP]), nman * nman)[p]
+                if cap < 0:
+                    return 0  # a penalty pair: forces.py applies its forces, no MuJoCo contact
                 if cap > 0:
                     count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
                     count[C_CALLS] += 1

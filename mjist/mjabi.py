@@ -93,11 +93,12 @@ _PROBE_XML = """
     <body><freejoint/><geom type="box" size=".1 .1 .1"/><site/></body>
     <body pos="0 0 1"><joint type="hinge"/><geom type="sphere" size=".1"/>
       <geom type="capsule" size=".1 .2" pos=".3 0 0"/></body>
+    <body mocap="true" pos="0 0 2"><geom type="sphere" size=".1" contype="0" conaffinity="0"/></body>
   </worldbody>
 </mujoco>
 """
 # fields the hook reads: pointers (found by value) and counters (found by value, then checked)
-_POINTER_FIELDS = ("geom_xpos", "geom_xmat")
+_POINTER_FIELDS = ("geom_xpos", "geom_xmat", "xpos", "xquat", "xipos", "mocap_pos", "mocap_quat", "qfrc_passive")
 _OFFSETS: dict | None = None
 
 
@@ -105,9 +106,15 @@ def _words(address: int, n: int) -> np.ndarray:
     return np.frombuffer((ctypes.c_uint64 * n).from_address(address), dtype=np.uint64).copy()
 
 
-def _find_pointer(d, name: str, words: np.ndarray) -> int:
+def _find_pointer(d, name: str, words: np.ndarray, anchor: int | None = None) -> int:
     ptr = getattr(d, name).ctypes.data
     hits = np.flatnonzero(words == np.uint64(ptr))
+    if len(hits) > 1 and anchor is not None:
+        # several words hold this address (an array at the start of a buffer): the pointer
+        # arrays of mjData are consecutive 8-byte fields, so the introspection order picks one
+        names = [f.name for f in _mj_structs.STRUCTS["mjData"].fields]
+        want = anchor + 8 * (names.index(name) - names.index("geom_xpos"))
+        hits = hits[hits * 8 == want]
     if len(hits) != 1:
         raise MuJoCoABIError(
             f"cannot locate mjData.{name} in this MuJoCo build ({len(hits)} candidate offsets): "
@@ -128,7 +135,8 @@ def data_offsets() -> dict:
         m = mujoco.MjModel.from_xml_string(_PROBE_XML)
         d = mujoco.MjData(m)
         words = _words(d._address, 65536)  # mjData holds big inline stat arrays (~160 kB)
-        off = {name: _find_pointer(d, name, words) for name in _POINTER_FIELDS}
+        off = {"geom_xpos": _find_pointer(d, "geom_xpos", words)}
+        off.update({name: _find_pointer(d, name, words, off["geom_xpos"]) for name in _POINTER_FIELDS[1:]})
         d.time = 1234.5678125  # an exactly representable, unlikely value
         words = _words(d._address, 65536)
         hits = np.flatnonzero(words == np.array([d.time]).view(np.uint64)[0])
@@ -254,6 +262,46 @@ def call_collision(typingctx, fn, m, d, con, g1, g2, margin):
         return builder.call(f, list(args[1:]))
     sig = types.int32(types.int64, types.int64, types.int64, types.int64, types.int32, types.int32, types.float64)
     return sig, codegen
+
+
+@intrinsic
+def call_apply_ft(typingctx, fn, m, d, force, torque, point, body, qfrc):
+    """``mj_applyFT(m, d, force, torque, point, body, qfrc_target)`` (pointers as int64)."""
+    def codegen(context, builder, signature, args):
+        fnty = ir.FunctionType(ir.VoidType(), [_I64, _I64, _I64, _I64, _I64, _I32, _I64])
+        f = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(f, list(args[1:]))
+        return context.get_dummy_value()
+    sig = types.none(types.int64, types.int64, types.int64, types.int64, types.int64, types.int64, types.int32, types.int64)
+    return sig, codegen
+
+
+@intrinsic
+def call_object_velocity(typingctx, fn, m, d, objtype, objid, res, flg_local):
+    """``mj_objectVelocity(m, d, objtype, objid, res[6], flg_local)``: angular then linear velocity."""
+    def codegen(context, builder, signature, args):
+        fnty = ir.FunctionType(ir.VoidType(), [_I64, _I64, _I32, _I32, _I64, _I32])
+        f = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(f, list(args[1:]))
+        return context.get_dummy_value()
+    sig = types.none(types.int64, types.int64, types.int64, types.int32, types.int32, types.int64, types.int32)
+    return sig, codegen
+
+
+@intrinsic
+def call_generic(typingctx, fn, m, d):
+    """``fn(m, d)`` for an ``mjfGeneric`` callback (the previous ``mjcb_passive``)."""
+    def codegen(context, builder, signature, args):
+        fnty = ir.FunctionType(ir.VoidType(), [_I64, _I64])
+        f = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(f, [args[1], args[2]])
+        return context.get_dummy_value()
+    return types.none(types.int64, types.int64, types.int64), codegen
+
+
+def passive_callback():
+    """The ``mjcb_passive`` global of libmujoco (a ctypes ``c_void_p``)."""
+    return ctypes.c_void_p.in_dll(lib(), "mjcb_passive")
 
 
 def set_registry(address: int) -> None:

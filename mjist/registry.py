@@ -22,6 +22,7 @@ _ENTRIES: dict[int, "ModelEntry"] = {}  # mjModel address -> entry
 _ORIGINAL: dict[int, int] = {}  # table index -> MuJoCo's own function (recorded before any change)
 _INSTALLED: set[int] = set()  # slots currently holding our cfuncs
 _KEEP: list = []  # every root ever published (readers may still hold one)
+_PASSIVE = {"installed": False, "previous": 0}  # mjcb_passive: ours installed? what was there before
 
 
 def _slot_of(t1: int, t2: int) -> int:
@@ -49,12 +50,15 @@ class ModelEntry:
         self.slots = slots  # which table slots this model needs
         self.words = np.zeros(hook.E_WORDS, np.int64)
         self.counters = arrays["counters"]
+        self.passive = False  # needs the mjcb_passive callback (penalty pairs or a coupling)
+        self.pair_index = {}  # (geom1, geom2) -> the pair's slot index p
 
 
 def _publish():
     root = np.zeros(hook.ROOT_WORDS, np.int64)
     for s, (t1, t2) in enumerate(hook.SLOTS):
         root[hook.ROOT_ORIG + s] = _ORIGINAL.get(abi.table_index(t1, t2), 0)
+    root[hook.ROOT_PASSIVE] = _PASSIVE["previous"]
     entries = list(_ENTRIES.values())
     if len(entries) > hook.MAX_MODELS:
         raise RuntimeError(f"at most {hook.MAX_MODELS} models can be attached at once: detach some first")
@@ -81,6 +85,40 @@ def _sync_table():
         elif s not in needed and s in _INSTALLED:
             table[idx] = _ORIGINAL[idx] or None
             _INSTALLED.discard(s)
+    from . import forces
+
+    cb = abi.passive_callback()
+    ours = forces.passive.address
+    want = any(e.passive for e in _ENTRIES.values())
+    if want and not _PASSIVE["installed"]:
+        cb.value = ours
+        _PASSIVE["installed"] = True
+    elif not want and _PASSIVE["installed"]:
+        if (cb.value or 0) == ours:  # someone who replaced ours keeps their callback
+            cb.value = _PASSIVE["previous"] or None
+        _PASSIVE["installed"] = False
+
+
+def _capture_passive() -> None:
+    """Remember the mjcb_passive in place before ours goes in (ours calls it first)."""
+    from . import forces
+
+    if not any(e.passive for e in _ENTRIES.values()):
+        return
+    cur = abi.passive_callback().value or 0
+    if not _PASSIVE["installed"]:
+        _PASSIVE["previous"] = 0 if cur == forces.passive.address else int(cur)
+    elif cur != forces.passive.address:
+        # someone replaced ours since (e.g. mujoco.set_mjcb_passive): chain theirs, put ours back
+        _PASSIVE["previous"] = int(cur)
+        _PASSIVE["installed"] = False
+
+
+def passive_is_ours() -> bool:
+    """Whether ``mjcb_passive`` still holds mjist's callback (a later ``mujoco.set_mjcb_passive`` replaces it)."""
+    from . import forces
+
+    return (abi.passive_callback().value or 0) == forces.passive.address
 
 
 def check_slots(slots: set[int]) -> None:
@@ -104,6 +142,7 @@ def add(entry: ModelEntry) -> None:
         if entry.address in _ENTRIES:
             raise RuntimeError("this MjModel is already attached: call handle.detach() first")
         _ENTRIES[entry.address] = entry
+        _capture_passive()
         _publish()
         _sync_table()
 

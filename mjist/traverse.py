@@ -413,7 +413,7 @@ CROSS = 0.5  # a pair is "crossed" when its overlap exceeds this fraction of the
 
 
 @njit(cache=True)
-def contact_normal(Na, Nb, xf, a, b, out):
+def contact_normal(Na, Nb, xf, a, b, out, min_climb=0):
     """Unit contact normal (A→B, A's frame) of leaf pair ``(a, b)`` into ``out[0:3]``.
 
     The centre-to-centre direction of two balls that overlap by more than about their
@@ -421,6 +421,8 @@ def contact_normal(Na, Nb, xf, a, b, out):
     A's centre): deep penetration of thin features. Then the direction is taken from the
     nearest ancestors whose overlap is shallow relative to their size: their centres lie
     deeper inside each object, so their direction keeps the larger-scale geometry.
+    ``min_climb`` climbs at least that many levels anyway: sibling leaves share the normal,
+    so it does not jump when the deepest pair moves to a neighbouring leaf (penalty forces).
     Returns the number of levels climbed.
     """
     climbed = 0
@@ -433,7 +435,7 @@ def contact_normal(Na, Nb, xf, a, b, out):
         ra = Na[a, 3]
         rb = Nb[b, 3]
         deep = ra + rb - d > CROSS * min(ra, rb)
-        if (not deep or (a == 0 and b == 0)) and d > 1e-300:
+        if (climbed >= min_climb and not deep or (a == 0 and b == 0)) and d > 1e-300:
             out[0] = dx / d
             out[1] = dy / d
             out[2] = dz / d

@@ -8,6 +8,12 @@ ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"
 
 
+@pytest.fixture(scope="session")
+def cache(tmp_path_factory):
+    """One tree cache for the session: the jaw trees are built once for every MuJoCo test."""
+    return str(tmp_path_factory.mktemp("treecache"))
+
+
 def shared_path(*parts) -> Path:
     """A file of ../shared/data, or skip the test when the folder is absent (fresh clones)."""
     p = SHARED.joinpath(*parts)

@@ -65,11 +65,6 @@ def comb_file(tmp_path_factory):
     return str(p)
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("treecache"))
-
-
 def _model(comb_file, gtype="mesh", extra=""):
     return mujoco.MjModel.from_xml_string(COMB_XML.format(comb=comb_file, gtype=gtype, extra=extra))
 
@@ -263,11 +258,17 @@ def test_thread_pool_bound_to_mjdata_gives_identical_steps(comb_file, cache):
         assert h.stats()["no_stack"] == 0 and h.stats()["failed"] == 0
     assert runs[0][-1, -1] > 0 and np.array_equal(runs[0], runs[1])
 
+
 def test_bad_config_is_named(comb_file, cache):
     for extra, msg in [
         ('<text name="mjist_geomz" data="all"/>', "unknown mjist setting"),
         ('<text name="mjist_offset" data="lots"/>', "mjist_offset"),
-        ('<text name="mjist_mode" data="penalty"/>', "haptic"),
+        ('<text name="mjist_mode" data="springs"/>', "'constraint'"),
+        ('<text name="mjist_penalty" data="spring"/>', "'contacts'"),
+        ('<numeric name="mjist_stiffness" data="-5"/>', "≥ 0"),
+        ('<text name="mjist_coupling" data="upper"/>', "two bodies"),
+        ('<text name="mjist_coupling" data="upper lower"/>', "mocap body"),
+        ('<numeric name="mjist_coupling_gains" data="1 2 3"/>', "4 numbers"),
         ('<numeric name="mjist_contacts" data="0"/>', "mjist_contacts"),
         ('<numeric name="mjist_max_error" data="-1"/>', "positive"),
         ('<text name="mjist_max_error" data="1"/>', "<numeric>"),
@@ -546,3 +547,42 @@ def test_sphere_falls_into_the_gap_between_teeth(comb_file, cache):
     eps = 0.0004
     assert rest["native"] > 0.0095  # on the hull's lid over the tooth tips (9 mm + radius)
     assert -0.0015 - 1e-4 <= rest["ist"] <= -0.0015 + eps + 1e-4  # on the gap's floor (-3 mm + radius), within ε
+
+
+def test_passive_callback_chains_and_is_restored(cache):
+    """A callback already in mjcb_passive keeps running under ours; detach puts it back."""
+    hits = np.zeros(1, np.int64)
+    addr = hits.ctypes.data
+
+    @cfunc(types.void(types.int64, types.int64))
+    def count(m, d):
+        p = mjabi.i64_ptr(addr)
+        p[0] += 1
+
+    cb = mjabi.passive_callback()
+    before = cb.value
+    cb.value = count.address
+    try:
+        model, h = A.load_model(ROOT / "models" / "haptic_jaw.xml", cache_dir=cache)
+        assert registry.passive_is_ours()
+        d = mujoco.MjData(model)
+        h0 = int(hits[0])  # count only these steps
+        for _ in range(5):
+            mujoco.mj_step(model, d)
+        assert hits[0] == h0 + 5 and h.haptic(d)["coupling"] is not None  # theirs ran, and ours
+        h.detach()
+        assert cb.value == count.address  # theirs is back alone
+        # replaced after attach (mujoco.set_mjcb_passive does that): a new attach chains it again
+        model, h = A.load_model(ROOT / "models" / "haptic_jaw.xml", cache_dir=cache)
+        cb.value = count.address
+        assert not registry.passive_is_ours()
+        model2, h2 = A.load_model(ROOT / "models" / "haptic_jaw.xml", cache_dir=cache)
+        assert registry.passive_is_ours()
+        h0 = int(hits[0])
+        mujoco.mj_step(model2, mujoco.MjData(model2))
+        assert hits[0] == h0 + 1
+        h2.detach()
+        h.detach()
+        assert cb.value == count.address
+    finally:
+        cb.value = before
