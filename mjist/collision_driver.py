@@ -486,9 +486,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     eps_pair = np.zeros(nman * nman, np.float64)
     slots = set()
     for a, b in pairs:
-        c = min(mujoco.mj_maxContact(model, a, b, 0), mujoco.mj_maxContact(model, a, b, 1))
-        if cfg.contacts is not None:
-            c = min(c, int(cfg.contacts))
+        c = _pair_cap(model, a, b, cfg)
         if c < 1:
             continue
         eps = handle.trees[_geom_name(model, a)].error_bound + handle.trees[_geom_name(model, b)].error_bound
@@ -519,9 +517,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         gprim[b] = i
         prim_tab[i] = [model.geom_type[b], *model.geom_size[b]]
     for b, a in prim_pairs:
-        c = min(mujoco.mj_maxContact(model, b, a, 0), mujoco.mj_maxContact(model, b, a, 1))
-        if cfg.contacts is not None:
-            c = min(c, int(cfg.contacts))
+        c = _pair_cap(model, b, a, cfg)
         if c < 1:
             continue
         eps = handle.trees[_geom_name(model, a)].error_bound
@@ -610,6 +606,12 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     registry.add(entry)
     handle._entry = entry
     return handle
+
+
+def _pair_cap(model, g1: int, g2: int, cfg: Config) -> int:
+    """Contacts a pair may write: MuJoCo's buffer for it (with and without margin), then the setting."""
+    c = min(mujoco.mj_maxContact(model, g1, g2, 0), mujoco.mj_maxContact(model, g1, g2, 1))
+    return c if cfg.contacts is None else min(c, int(cfg.contacts))
 
 
 def _effective_mass(model, body: int, geom: int) -> float:

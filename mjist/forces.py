@@ -244,7 +244,6 @@ def _coupling(E, m, d, row, f, out, now, fresh):
     nb = E[E_NBODY]
     mp = carray(abi.f64_ptr(abi.load_i64(d + E[E_MOCPOS])), 3 * E[E_NMOCAP])
     mq = carray(abi.f64_ptr(abi.load_i64(d + E[E_MOCQUAT])), 4 * E[E_NMOCAP])
-    bx = carray(abi.f64_ptr(abi.load_i64(d + E[E_BXPOS])), 3 * nb)
     bq = carray(abi.f64_ptr(abi.load_i64(d + E[E_BXQUAT])), 4 * nb)
     ph = mp[3 * mid:3 * mid + 3]
     qh = mq[4 * mid:4 * mid + 4]

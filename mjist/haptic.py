@@ -184,6 +184,16 @@ def save_csv(path_obj: DevicePath, out) -> str:
     return str(out)
 
 
+def geom_pose(model, g: int, body_pos, body_quat) -> np.ndarray:
+    """4x4 world pose of geom ``g`` on a body logged at (``body_pos``, ``body_quat`` w-first)."""
+    Rb = Rotation.from_quat(np.asarray(body_quat)[[1, 2, 3, 0]])
+    Rg = Rotation.from_quat(model.geom_quat[g][[1, 2, 3, 0]])
+    P = np.eye(4)
+    P[:3, :3] = (Rb * Rg).as_matrix()
+    P[:3, 3] = np.asarray(body_pos) + Rb.apply(model.geom_pos[g])
+    return P
+
+
 def readout(handle: Handle, data) -> tuple[np.ndarray, np.ndarray]:
     """Live views of the penalty pair's and the coupling's output rows for ``data`` (after one step).
 

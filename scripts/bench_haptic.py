@@ -22,7 +22,6 @@ from pathlib import Path
 import coal
 import mujoco
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from mjist import collision_driver as A
 from mjist import haptic
@@ -30,15 +29,6 @@ from mjist import jaw as jawmod
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data" / "jaw"
-
-
-def _geom_pose(model, g, pos, quat):
-    Rb = Rotation.from_quat(np.asarray(quat)[[1, 2, 3, 0]])
-    Rg = Rotation.from_quat(model.geom_quat[g][[1, 2, 3, 0]])
-    P = np.eye(4)
-    P[:3, :3] = (Rb * Rg).as_matrix()
-    P[:3, 3] = pos + Rb.apply(model.geom_pos[g])
-    return P
 
 
 def coal_depth(ba, Pa, bb, Pb) -> float:
@@ -72,7 +62,7 @@ def run_case(scene, law, max_error, trajectories, every, steps_cap):
         err, coal_t = [], []
         idx = np.flatnonzero(log["contacts"] > 0)[::every]
         for i in idx:
-            Pmd = _geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
+            Pmd = haptic.geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
             t = time.perf_counter()
             dc = coal_depth(ba, Pmx, bb, Pmd)
             coal_t.append(time.perf_counter() - t)

@@ -1,12 +1,11 @@
 """The haptic scene: penalty forces and the virtual coupling inside mj_step, checked against coal."""
+import mujoco
 import numpy as np
 import pytest
-import mujoco
 from scipy.spatial.transform import Rotation
 
-import mjist
 from mjist import collision_driver as A
-from mjist import forces, haptic, registry
+from mjist import haptic
 from mjist import jaw as jawmod
 
 from conftest import ROOT
@@ -21,16 +20,6 @@ def scene(cache):
     bvh = {g: jawmod.coal_bvh(*A.mesh_of(model, g)) for g in (gmx, gmd)}
     yield model, h, gmx, gmd, bvh
     h.detach()
-
-
-def _geom_pose(model, g, body_pos, body_quat):
-    """World pose of geom ``g`` on a body at (pos, quat)."""
-    Rb = Rotation.from_quat(np.asarray(body_quat)[[1, 2, 3, 0]])
-    Rg = Rotation.from_quat(model.geom_quat[g][[1, 2, 3, 0]])
-    P = np.eye(4)
-    P[:3, :3] = (Rb * Rg).as_matrix()
-    P[:3, 3] = body_pos + Rb.apply(model.geom_pos[g])
-    return P
 
 
 def _maxilla_pose(model, gmx):
@@ -62,7 +51,7 @@ def test_forces_against_coal_along_trajectories(scene, trajectory):
     Pmx = _maxilla_pose(model, gmx)
     checked_far = checked_force = 0
     for i in range(0, s["steps"], 5):
-        Pmd = _geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
+        Pmd = haptic.geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
         true_d = jawmod.coal_distance(bvh[gmx], Pmx, bvh[gmd], Pmd)
         force = np.linalg.norm(log["contact_force"][i])
         if true_d > eps:
@@ -185,7 +174,7 @@ def test_hard_push_does_not_tunnel(scene):
     log = haptic.run(model, h, haptic.scripted(model, "push"))
     Pmx = _maxilla_pose(model, gmx)
     i = len(log["time"]) - 1
-    Pmd = _geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
+    Pmd = haptic.geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
     depth = _coal_depth((bvh[gmx], bvh[gmd]), Pmx, Pmd)
     print(f"push: device {np.linalg.norm(log['coupling_force'][i]):.2f} N, IST depth {log['depth'][i] * 1e3:.3f} mm, "
           f"coal depth {depth * 1e3:.3f} mm")

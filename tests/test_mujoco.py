@@ -1,6 +1,4 @@
 """The MuJoCo hook: IST contacts inside plain mj_step / mj_geomDistance / rollout, against coal."""
-import ctypes
-import os
 import warnings
 
 import mujoco
