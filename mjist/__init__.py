@@ -11,7 +11,6 @@ error bound (true distance ∈ [distance - error_bound, distance]).
 MuJoCo: ``model, handle = mjist.load_model("scene.xml")`` (or ``mjist.attach(model)``) makes
 plain ``mujoco.mj_step`` use IST contacts for the model's mesh geom pairs.
 """
-from .collision_driver import Handle, attach, load_model
 from .build import build, sphere_tree
 from .errors import ConfigError, MeshError, TreeFileError
 from .mesh import Mesh, load_mesh
@@ -38,3 +37,15 @@ __all__ = [
     "FORMAT_VERSION",
 ]
 __version__ = "0.1.0"
+
+_MUJOCO_NAMES = ("attach", "load_model", "Handle")
+
+
+def __getattr__(name):
+    # the MuJoCo layer is imported on first use, so `mjist render`/`demo` can pick the GL
+    # backend (MUJOCO_GL) before `import mujoco` reads it
+    if name in _MUJOCO_NAMES:
+        from . import collision_driver
+
+        return getattr(collision_driver, name)
+    raise AttributeError(f"module 'mjist' has no attribute {name!r}")

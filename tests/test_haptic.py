@@ -231,3 +231,27 @@ def test_device_csv_round_trip_and_errors(scene, tmp_path):
         haptic.load_csv(bad, 0.001)
     with pytest.raises(ValueError, match="unknown trajectory"):
         haptic.scripted(model, "samba")
+
+
+def test_cli_haptic_writes_log_summary_and_plot(scene, tmp_path, cache, monkeypatch):
+    import json
+
+    from mjist import cli
+
+    monkeypatch.setenv("MJIST_CACHE", cache)
+    assert cli.main(["haptic", "--trajectory", "close", "--seconds", "0.3", "--out-dir", str(tmp_path), "-q"]) == 0
+    s = json.loads((tmp_path / "close.json").read_text())
+    assert s["steps"] == 300 and s["finite"] and (tmp_path / "close.png").stat().st_size > 0
+    log = np.load(tmp_path / "close_log.npz")
+    assert log["coupling_force"].shape == (300, 3)
+    assert cli.main(["haptic", "--trajectory", str(tmp_path / "missing.csv"), "--out-dir", str(tmp_path), "-q"]) == 1
+
+
+def test_cli_import_leaves_the_gl_backend_open():
+    """`mjist render`/`demo` set MUJOCO_GL before MuJoCo is imported: the CLI must not import it first."""
+    import subprocess
+    import sys
+
+    code = "import sys, mjist.cli; print('mujoco' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "False"
