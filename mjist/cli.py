@@ -1,4 +1,4 @@
-"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``, ``haptic``."""
+"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``, ``haptic``, ``occlusion``."""
 from __future__ import annotations
 
 import argparse
@@ -144,6 +144,20 @@ def _cmd_haptic(args) -> int:
         return 1
 
 
+def _cmd_occlusion(args) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from . import occlusion
+    from .errors import ConfigError, MeshError
+
+    try:
+        return occlusion.main(scene=args.scene, data=args.data, starts=args.starts, translation_mm=args.translation,
+                              rotation_deg=args.rotation, threads=args.threads, seed=args.seed, top=args.top,
+                              out=args.out_dir, progress=not args.quiet)
+    except (ConfigError, MeshError, FileNotFoundError, ValueError) as exc:
+        print(f"mjist occlusion: {exc}", file=sys.stderr)
+        return 1
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -198,6 +212,18 @@ def main(argv=None) -> int:
     hp.add_argument("--out-dir", default="out/haptic", help="log (.npz), summary (.json) and plot (.png)")
     hp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     hp.set_defaults(func=_cmd_haptic)
+    oc = sub.add_parser("occlusion", help="search where the teeth fit: close many starting poses in parallel, rank them")
+    oc.add_argument("scene", nargs="?", default=None, help="occlusion-search scene (default: models/occlusion_search.xml)")
+    oc.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
+    oc.add_argument("--starts", type=int, default=64, help="starting poses (default 64)")
+    oc.add_argument("--translation", type=float, default=2.0, help="start shifts up to this many mm (default 2)")
+    oc.add_argument("--rotation", type=float, default=3.0, help="start turns up to this many degrees (default 3)")
+    oc.add_argument("--threads", type=int, default=None, help="rollout threads (default: CPU count)")
+    oc.add_argument("--seed", type=int, default=0)
+    oc.add_argument("--top", type=int, default=5, help="candidates to report (default 5)")
+    oc.add_argument("--out-dir", default="out/occlusion", help="occlusion.json, landscape.png, best.png")
+    oc.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    oc.set_defaults(func=_cmd_occlusion)
     args = p.parse_args(argv)
     t = time.perf_counter()
     rc = args.func(args)
