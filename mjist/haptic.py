@@ -317,16 +317,9 @@ def plot(log: dict, out, title: str = "") -> str:
 
 def scene_for(folder, out_dir) -> Path:
     """The haptic scene of a jaw pair folder (e.g. ``../shared/data/jaw``), written into ``out_dir``."""
-    from .scenes import haptic_jaw_xml
+    from .scenes import haptic_jaw_xml, pair_scene
 
-    mx, md, info = jawmod.load_pair(folder)
-    xml = haptic_jaw_xml(os.path.abspath(info["paths"]["maxilla"]), os.path.abspath(info["paths"]["mandible"]),
-                         np.asarray(info["hinge"], float), info["mandible_pose"][:3, 3], max_error=3e-4,
-                         title=f"jaw pair of {folder}")
-    os.makedirs(out_dir, exist_ok=True)
-    path = Path(out_dir) / "haptic_jaw.xml"
-    path.write_text(xml)
-    return path
+    return pair_scene(folder, out_dir, haptic_jaw_xml, "haptic_jaw.xml")
 
 
 def main(scene=None, trajectory: str = "chewing", law: str | None = None, seconds: float | None = None,

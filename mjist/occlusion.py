@@ -66,16 +66,9 @@ class Candidate:
 
 def scene_for(folder, out_dir) -> Path:
     """The occlusion-search scene of a jaw pair folder (e.g. ``../shared/data/jaw``)."""
-    from .scenes import occlusion_search_xml
+    from .scenes import occlusion_search_xml, pair_scene
 
-    mx, md, info = jawmod.load_pair(folder)
-    xml = occlusion_search_xml(os.path.abspath(info["paths"]["maxilla"]), os.path.abspath(info["paths"]["mandible"]),
-                               np.asarray(info["hinge"], float), info["mandible_pose"][:3, 3], max_error=3e-4,
-                               title=f"jaw pair of {folder}")
-    os.makedirs(out_dir, exist_ok=True)
-    path = Path(out_dir) / "occlusion_search.xml"
-    path.write_text(xml)
-    return path
+    return pair_scene(folder, out_dir, occlusion_search_xml, "occlusion_search.xml")
 
 
 def _reference(model):

@@ -253,3 +253,21 @@ def occlusion_search_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 
   </keyframe>
 </mujoco>
 """
+
+
+def pair_scene(folder, out_dir, make_xml, filename: str, **kwargs):
+    """Write ``make_xml``'s scene for the jaw pair in ``folder`` (absolute mesh paths, its hinge
+    and occlusion, ``max_error`` 0.3 mm unless given) as ``out_dir/filename``; return the path."""
+    import os
+    from pathlib import Path
+
+    from .jaw import load_pair
+
+    _, _, info = load_pair(folder)
+    kwargs.setdefault("max_error", 3e-4)
+    xml = make_xml(os.path.abspath(info["paths"]["maxilla"]), os.path.abspath(info["paths"]["mandible"]),
+                   np.asarray(info["hinge"], float), info["mandible_pose"][:3, 3], title=f"jaw pair of {folder}", **kwargs)
+    os.makedirs(out_dir, exist_ok=True)
+    path = Path(out_dir) / filename
+    path.write_text(xml)
+    return path
