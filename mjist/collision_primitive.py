@@ -217,3 +217,55 @@ def stack_size(N) -> int:
     """Stack entries a single-tree depth-first traversal of packed tree ``N`` can need."""
     depth = int(N[:, 7].max()) if N.shape[0] else 0
     return int(N[:, CC].max() if N.shape[0] else 1) * (depth + 1) + 1
+
+
+@njit(cache=True)
+def min_distance(N, ptype, s0, s1, s2, xf, st, g):
+    """Smallest ``sd(c) - r`` over the leaves: the signed distance from the primitive to the
+    union of leaf spheres (negative: overlap depth), depth first with the node bound
+    ``sd(c) - r`` pruning against the best so far. ``st`` (int64) is the stack, ``g`` 3 floats
+    of scratch. Returns ``(value, leaf node, code)``."""
+    best = math.inf
+    best_leaf = -1
+    cap_st = st.shape[0]
+    st[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        i = st[sp]
+        x = N[i, 0]
+        y = N[i, 1]
+        z = N[i, 2]
+        v = signed_distance(ptype, s0, s1, s2, xf[0] * x + xf[1] * y + xf[2] * z + xf[9],
+                            xf[3] * x + xf[4] * y + xf[5] * z + xf[10],
+                            xf[6] * x + xf[7] * y + xf[8] * z + xf[11], g) - N[i, 3]
+        if v >= best:
+            continue
+        cc = int(N[i, CC])
+        if cc == 0:
+            best = v
+            best_leaf = i
+            continue
+        if sp + cc > cap_st:
+            return best, best_leaf, STACK_FULL
+        cs = int(N[i, CS])
+        for c in range(cc - 1, -1, -1):
+            st[sp] = cs + c
+            sp += 1
+    return best, best_leaf, OK
+
+
+@njit(cache=True)
+def points_distance(N, P, xf_rows, st, g, out):
+    """Distance from each point ``P[k]`` (tree frame after ``xf_rows``: point k is
+    ``R p + t`` with the 12-vector xf) to the union of leaf spheres: ``out[k]`` (negative inside)."""
+    for k in range(P.shape[0]):
+        x = P[k, 0]
+        y = P[k, 1]
+        z = P[k, 2]
+        # a point is a sphere of radius 0: put it at the origin of a primitive frame
+        xf_rows[9] = -x
+        xf_rows[10] = -y
+        xf_rows[11] = -z
+        v, _, code = min_distance(N, SPHERE, 0.0, 0.0, 0.0, xf_rows, st, g)
+        out[k] = v if code == OK else math.nan

@@ -11,9 +11,14 @@ threads), and scores every settled pose:
   thirds); more regions touched is better;
 * **balance**: 1 − |L − R| / (L + R) over the contacts' left/right counts;
 * **penetration**: the IST penetration volume (mm³), subtracted;
-* **stability**: residual speed of the mandible (mm/s), subtracted (capped at 1).
+* **stability**: residual speed of the mandible (mm/s), subtracted (capped at 1);
+* **distance field**: distances from 300 points of the mandible's occlusal surface (up-facing
+  vertices within 3 mm of the maxilla at the reference pose) to the maxilla's inner spheres
+  (``collision_primitive.points_distance``; each is within ε of the true distance, on average
+  the maxilla's mean surface gap above it): their median, and the fraction closer than 0.3 mm
+  plus that mean gap (how much of the arch meets), added twice.
 
-``score = regions + 2·balance − volume − min(speed, 1)``. Settled poses within 0.05 mm and
+``score = regions + 2·balance + 2·near − volume − min(speed, 1)``. Settled poses within 0.05 mm and
 0.1° merge into one candidate (``starts`` counts them: the size of its basin). The best
 ``polish`` candidates get their last gap closed exactly: the mandible is turned about the
 hinge to where coal's exact mesh distance reaches zero (first touch), so the reported pose does
@@ -55,6 +60,8 @@ class Candidate:
     balance: float = 0.0
     volume_mm3: float = 0.0
     speed_mm_s: float = 0.0
+    near_fraction: float = 0.0  # occlusal points within 0.3 mm of the maxilla's spheres
+    median_distance_mm: float | None = None  # their median distance
     coal_distance_mm: float | None = None  # at the polished pose
     polished_turn_deg: float | None = None  # how far polishing turned it about the hinge
     error: dict | None = None  # against the scene's occlusion keyframe
@@ -123,7 +130,47 @@ def _separate(model, q: Query, gmx, gmd, Pmx, start: np.ndarray, step: float = 2
     return s
 
 
-def _score_pose(model, q: Query, gmx, gmd, Pmx, pos, quat, vel, offset, z_cuts) -> dict:
+NEAR = 3e-4  # m: an occlusal point this close to the maxilla's spheres counts as meeting it
+
+
+def occlusal_points(model, gmx, gmd, n: int = 300, reach: float = 3e-3) -> np.ndarray:
+    """Points of the mandible's occlusal surface (its geom frame): up-facing vertices within
+    ``reach`` of the maxilla at the scene's reference pose (the teeth facing each other, not
+    the rami), ``n`` of them spread evenly along the list."""
+    import trimesh
+
+    V, F = mesh_of(model, gmd)
+    normals = trimesh.Trimesh(V, F, process=False).vertex_normals
+    p0, q0, _ = _reference(model)
+    P = _geom_pose(model, gmd, p0, q0)
+    d = mujoco.MjData(model)
+    mujoco.mj_forward(model, d)
+    Px = np.eye(4)
+    Px[:3, :3] = d.geom_xmat[gmx].reshape(3, 3)
+    Px[:3, 3] = d.geom_xpos[gmx]
+    up = P[:3, :3].T @ UP  # world up in the mandible's geom frame
+    cand = np.flatnonzero(normals @ up > 0.5)
+    cand = cand[np.linspace(0, cand.size - 1, min(4000, cand.size)).astype(np.int64)] if cand.size else cand
+    T = np.linalg.inv(Px) @ P  # mandible geom frame -> maxilla geom frame
+    Vx, Fx = mesh_of(model, gmx)
+    _, dist, _ = trimesh.proximity.closest_point(trimesh.Trimesh(Vx, Fx, process=False), V[cand] @ T[:3, :3].T + T[:3, 3])
+    keep = cand[dist < reach]
+    if keep.size == 0:
+        return V[:0]
+    return V[keep[np.linspace(0, keep.size - 1, min(n, keep.size)).astype(np.int64)]]
+
+
+def _distance_field(Nmx, Pmx, Pmd, pts, st, g, out):
+    from .collision_primitive import points_distance
+
+    T = np.linalg.inv(Pmx) @ Pmd  # mandible geom frame -> maxilla tree frame
+    P = pts @ T[:3, :3].T + T[:3, 3]
+    xf = np.array([1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0])
+    points_distance(Nmx, P, xf, st, g, out[:len(P)])
+    return out[:len(P)]
+
+
+def _score_pose(model, q: Query, gmx, gmd, Pmx, pos, quat, vel, offset, z_cuts, field) -> dict:
     Pmd = _geom_pose(model, gmd, pos, quat)
     c = q.contacts(Pmx, Pmd, max_contacts=32, split_depth=4, margin=offset)
     vol = q.penetration_volume(Pmx, Pmd).volume
@@ -141,9 +188,12 @@ def _score_pose(model, q: Query, gmx, gmd, Pmx, pos, quat, vel, offset, z_cuts) 
     names = sorted(counts)
     balance = 1.0 - abs(left - right) / (left + right) if left + right else 0.0
     speed = float(np.linalg.norm(vel[:3]) * 1e3)  # mm/s
-    score = len(names) + 2.0 * balance - vol * 1e9 - min(speed, 1.0)
+    dist, gap = field(Pmd)
+    near = float(np.mean(dist < NEAR + gap)) if dist.size else 0.0  # the spheres sit ~gap inside
+    score = len(names) + 2.0 * balance + 2.0 * near - vol * 1e9 - min(speed, 1.0)
     return {"score": float(score), "contacts": int(c.count), "regions": names, "region_counts": counts,
-            "balance": float(balance), "volume_mm3": float(vol * 1e9), "speed_mm_s": speed}
+            "balance": float(balance), "volume_mm3": float(vol * 1e9), "speed_mm_s": speed,
+            "near_fraction": near, "median_distance_mm": float(np.median(dist) * 1e3) if dist.size else None}
 
 
 def pose_error(model, gmd, pos, quat, ref_pos, ref_quat, sample: np.ndarray) -> dict:
@@ -271,10 +321,24 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         qpos = final[:, 1:1 + nq]
         qvel = final[:, 1 + nq:1 + nq + nv]
         offset = handle.pairs[0].offset
+        from .collision_primitive import stack_size
+        from .traverse import pack
+
+        Nmx = pack(handle.trees["maxilla"])
+        pts = occlusal_points(model, gmx, gmd)
+        st = np.zeros(stack_size(Nmx), np.int64)
+        g = np.zeros(3)
+        buf = np.zeros(max(len(pts), 1))
+
+        gap = float(handle.trees["maxilla"].info.get("mean_gap", 0.0))
+
+        def field(Pmd):
+            return _distance_field(Nmx, Pmx, Pmd, pts, st, g, buf), gap
+
         scored = []
         for i in range(starts):
             quat = qpos[i, 3:7] / np.linalg.norm(qpos[i, 3:7])
-            s = _score_pose(model, q, gmx, gmd, Pmx, qpos[i, :3], quat, qvel[i], offset, z_cuts)
+            s = _score_pose(model, q, gmx, gmd, Pmx, qpos[i, :3], quat, qvel[i], offset, z_cuts, field)
             s.update(pos=qpos[i, :3].copy(), quat=quat, start=X[i])
             scored.append(s)
         order = sorted(range(starts), key=lambda i: (-scored[i]["score"], i))
@@ -293,7 +357,8 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         for rank, (i, members) in enumerate(clusters[:top]):
             s = scored[i]
             c = Candidate(rank + 1, s["score"], s["pos"], s["quat"], len(members), s["contacts"], s["regions"],
-                          s["region_counts"], s["balance"], s["volume_mm3"], s["speed_mm_s"])
+                          s["region_counts"], s["balance"], s["volume_mm3"], s["speed_mm_s"], s["near_fraction"],
+                          s["median_distance_mm"])
             if rank < polish:
                 c.pos, c.quat, turn, dist = _polish(model, gmd, Pmx, bvh, s["pos"], s["quat"], hinge)
                 c.polished_turn_deg, c.coal_distance_mm = turn, dist * 1e3
