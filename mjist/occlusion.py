@@ -369,6 +369,7 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
             "translation_mm": translation * 1e3, "rotation_deg": rotation_deg, "opening_deg": opening_deg,
             "setup_s": setup_s, "simulate_s": sim_s, "starts_per_second": starts / sim_s, "total_s": time.perf_counter() - t0,
             "error_bound_mm": handle.pairs[0].error_bound * 1e3, "offset_mm": offset * 1e3,
+            "reference_pos": ref_pos.tolist(), "reference_quat": ref_quat.tolist(),
             "candidates": [c.as_dict() for c in cands],
             "landscape": [{"start": s["start"].tolist(), "score": s["score"], "pos": s["pos"].tolist(),
                            "error": pose_error(model, gmd, s["pos"], s["quat"], ref_pos, ref_quat, sample[:200])}
@@ -396,14 +397,13 @@ def write_outputs(res: dict, out_dir, picture: bool = True) -> list[str]:
 
     L = res["landscape"]
     st = np.array([x["start"][:3] for x in L])
-    ref = np.array(res["candidates"][0]["pos"]) if res["candidates"] else st.mean(0)
-    jaw = (st - ref) @ JAW_TO_WORLD  # world offsets -> jaw frame (rows: J^T v)
+    jaw = (st - np.asarray(res["reference_pos"])) @ JAW_TO_WORLD  # world offsets -> jaw frame (rows: J^T v)
     sc = np.array([x["score"] for x in L])
     err = np.array([x["error"]["rms_mm"] for x in L])
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.5))
     p = ax[0].scatter(jaw[:, 0] * 1e3, jaw[:, 2] * 1e3, c=sc, cmap="viridis", s=25)
     fig.colorbar(p, ax=ax[0], label="score of the settled pose")
-    ax[0].set_xlabel("start: lateral offset (mm)")
+    ax[0].set_xlabel("start: lateral offset from the reference occlusion (mm)")
     ax[0].set_ylabel("start: antero-posterior offset (mm)")
     ax[0].set_title("where each start settles: score")
     ax[1].scatter(err, sc, s=15)
