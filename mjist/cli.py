@@ -1,4 +1,4 @@
-"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``, ``haptic``, ``occlusion``."""
+"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``, ``haptic``, ``occlusion``, ``bench``."""
 from __future__ import annotations
 
 import argparse
@@ -158,6 +158,18 @@ def _cmd_occlusion(args) -> int:
         return 1
 
 
+def _cmd_bench(args) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from . import bench
+
+    try:
+        res = bench.run(quick=args.quick, out=args.out_dir, only=args.only.split(",") if args.only else None)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"mjist bench: {exc}", file=sys.stderr)
+        return 1
+    return 0 if all(s["returncode"] == 0 for s in res["stages"].values()) else 1
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -224,6 +236,11 @@ def main(argv=None) -> int:
     oc.add_argument("--out-dir", default="out/occlusion", help="occlusion.json, landscape.png, best.png")
     oc.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     oc.set_defaults(func=_cmd_occlusion)
+    bn = sub.add_parser("bench", help="run the benchmark suite; write BENCHMARKS.generated.md and pareto.png")
+    bn.add_argument("--quick", action="store_true", help="small sizes, under 5 minutes")
+    bn.add_argument("--only", help="comma-separated stages: build, query, mujoco, haptic, occlusion")
+    bn.add_argument("--out-dir", default="out/bench")
+    bn.set_defaults(func=_cmd_bench)
     args = p.parse_args(argv)
     t = time.perf_counter()
     rc = args.func(args)

@@ -41,6 +41,12 @@ def main():
     out = Path(a.out)
     os.makedirs(out.parent, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
+    md = ["| rollout threads | starts | closing s | whole search s | starts/s | best vs designed occlusion |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        e = r["best_error"]
+        md.append(f"| {r['threads']} | {r['starts']} | {r['simulate_s']:.2f} | {r['total_s']:.2f} | {r['starts_per_second']:.1f} | "
+                  f"{e['max_mm']:.3f} mm max, {e['rotation_deg']:.3f}° ({r['best_starts']} starts in its basin) |")
+    out.with_suffix(".md").write_text("\n".join(md) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")

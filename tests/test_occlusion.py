@@ -76,3 +76,18 @@ def test_points_distance_matches_brute_force():
                        np.zeros(3), out)
     ref = (np.linalg.norm(P[:, None] - t.leaf_centers[None], axis=2) - t.leaf_radii[None]).min(1)
     assert np.allclose(out, ref, atol=1e-12)
+
+
+def test_bench_suite_runs_a_stage_and_writes_the_report(cache, tmp_path, monkeypatch):
+    """`mjist bench --only occlusion`: the stage's script runs in its own process, the report follows."""
+    from mjist import bench
+
+    monkeypatch.setenv("MJIST_CACHE", cache)
+    with pytest.raises(ValueError, match="unknown stage"):
+        bench.run(only=["nope"], out=tmp_path)
+    res = bench.run(quick=True, only=["occlusion"], out=tmp_path, echo=lambda *a: None)
+    assert res["stages"]["occlusion"]["returncode"] == 0
+    md = (tmp_path / "BENCHMARKS.generated.md").read_text()
+    assert "mjist bench --quick --only occlusion" in md and "starts in its basin" in md and "cores" in md
+    rows = json.loads((tmp_path / "bench_occlusion.json").read_text())
+    assert rows[0]["starts"] == 32 and rows[0]["best_error"]["max_mm"] <= 0.2

@@ -1,0 +1,171 @@
+"""The benchmark suite in one command: ``mjist bench [--quick]``.
+
+Runs the benchmark scripts of ``scripts/`` one after the other, each in its own process (so
+each stage's timings and peak memory are its own): tree builds (``bench_build``), queries
+against coal (``bench_query``), MuJoCo step time against native hull / mesh-SDF / CoACD
+(``bench_mujoco``), the haptic loop (``bench_haptic``) and the occlusion search
+(``bench_occlusion``). Then writes into the output folder ``BENCHMARKS.generated.md`` (the
+exact command, machine, versions, wall time per stage and every stage's table) and
+``pareto.png``: run time against error for the IST at each ε against coal's exact distance
+(queries) and for each MuJoCo contact mode against the ground-truth occlusion (jaw closure).
+``--quick`` (small sizes, under 5 minutes) is what CI-sized machines can afford; the full
+run states its time.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPTS = ROOT / "scripts"
+
+# stage -> (script, extra args for --quick, extra args for the full run, how its outputs are named)
+STAGES = {
+    "build": ("bench_build.py", ["--quick"], [], "dir"),
+    "query": ("bench_query.py", ["--quick"], [], "dir"),
+    "mujoco": ("bench_mujoco.py", ["--quick", "--pairs", "bundled"], [], "prefix"),
+    "haptic": ("bench_haptic.py", ["--quick"], [], "prefix"),
+    "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),
+}
+
+
+def machine() -> dict:
+    """CPU, cores, memory and library versions of this machine."""
+    import coal  # noqa: F401
+    import mujoco
+    import numba
+    import numpy
+    import trimesh
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem = round(int(line.split()[1]) / 2**20, 1)
+                break
+    except OSError:
+        pass
+    from importlib.metadata import version
+
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gb": mem, "python": platform.python_version(),
+            "mujoco": mujoco.__version__, "numba": numba.__version__, "numpy": numpy.__version__,
+            "trimesh": trimesh.__version__, "coal": version("coal"), "platform": platform.platform()}
+
+
+def _outputs(stage: str, out: Path) -> tuple[list[str], Path]:
+    """Arguments that point a stage's script at ``out``, and its Markdown table's path."""
+    script, _, _, kind = STAGES[stage]
+    name = script[:-3]
+    if kind == "dir":
+        return ["--out", str(out)], out / f"{name}.md"
+    return ["--out", str(out / name)], out / f"{name}.md"
+
+
+def pareto(out: Path) -> str | None:
+    """Run time against error from the query and MuJoCo stages' JSON (whatever exists)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    q = out / "bench_query.json"
+    m = out / "bench_mujoco.json"
+    if not q.exists() and not m.exists():
+        return None
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
+    if q.exists():
+        res = json.loads(q.read_text())["results"]
+        for pair, r in res.items():
+            ax[0].scatter([r["coal"]["median_us"]], [0.0], marker="*", s=120, label=f"coal exact ({pair})")
+            for lv in r["levels"]:
+                for meth in ("distance", "backtracking", "backtracking+skip"):
+                    s = lv["methods"][meth]
+                    ax[0].errorbar([s["median_us"]], [s["err_max"] * 1e3], yerr=[[0], [lv["error_bound"] * 1e3 - s["err_max"] * 1e3]],
+                                   fmt="o", capsize=3, label=f"IST {meth}, ε1+ε2 {lv['error_bound'] * 1e3:.2f} mm ({pair})")
+        ax[0].set_xscale("log")
+        ax[0].set_xlabel("median time per query (µs)")
+        ax[0].set_ylabel("max |d_IST − coal| (mm); bar: up to the certified ε1+ε2")
+        ax[0].set_title("distance queries along the chewing motion")
+        ax[0].legend(fontsize=6)
+    if m.exists():
+        res = json.loads(m.read_text())["cases"]
+        for pair, modes in res.items():
+            for mode, r in modes.items():
+                ax[1].scatter([r["step_us_median"]], [abs(r["final_hinge_deg"])], s=40)
+                ax[1].annotate(f"{mode} ({pair})", (r["step_us_median"], abs(r["final_hinge_deg"])), fontsize=7)
+        ax[1].set_xscale("log")
+        ax[1].set_yscale("symlog", linthresh=0.1)
+        ax[1].set_xlabel("median mj_step time (µs)")
+        ax[1].set_ylabel("|final hinge − ground truth| (°)")
+        ax[1].set_title("jaw closure in MuJoCo: cost against occlusion error")
+    fig.tight_layout()
+    path = out / "pareto.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return str(path)
+
+
+def run(quick: bool = False, out="out/bench", only: list[str] | None = None, echo=print) -> dict:
+    """Run the stages; write ``BENCHMARKS.generated.md`` and ``pareto.png``; return the summary."""
+    if not SCRIPTS.exists():
+        raise FileNotFoundError(f"{SCRIPTS} is missing: `mjist bench` runs the repository's scripts; "
+                                "install from a clone with `pip install -e .`")
+    out = Path(out).resolve()
+    os.makedirs(out, exist_ok=True)
+    stages = only or list(STAGES)
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        raise ValueError(f"unknown stage(s) {unknown}: choose from {', '.join(STAGES)}")
+    command = "mjist bench" + (" --quick" if quick else "") + (f" --only {','.join(stages)}" if only else "")
+    t_all = time.perf_counter()
+    done = {}
+    for st in stages:
+        script, qargs, fargs, _ = STAGES[st]
+        args, md = _outputs(st, out)
+        cmd = [sys.executable, str(SCRIPTS / script), *(qargs if quick else fargs), *args]
+        echo(f"[{st}] {' '.join(cmd[1:])}")
+        t = time.perf_counter()
+        p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        sec = time.perf_counter() - t
+        done[st] = {"seconds": sec, "returncode": p.returncode, "table": md.read_text() if md.exists() else None}
+        if p.returncode != 0:
+            done[st]["error"] = (p.stderr or p.stdout)[-2000:]
+            echo(f"[{st}] FAILED after {sec:.0f} s:\n{done[st]['error']}")
+        else:
+            echo(f"[{st}] {sec:.0f} s")
+    total = time.perf_counter() - t_all
+    mach = machine()
+    lines = [
+        "# mjist benchmarks (generated)", "",
+        f"Command: `{command}` (from the project root). Generated {time.strftime('%Y-%m-%d %H:%M')}, "
+        f"total {total / 60:.1f} min.", "",
+        "Machine: " + ", ".join(f"{k} {v}" for k, v in mach.items()), "",
+        "| stage | script | seconds | status |", "|---|---|---|---|",
+    ]
+    for st, r in done.items():
+        lines.append(f"| {st} | scripts/{STAGES[st][0]} | {r['seconds']:.0f} | {'ok' if r['returncode'] == 0 else 'failed'} |")
+    for st, r in done.items():
+        lines += ["", f"## {st}", ""]
+        lines.append(r["table"].strip() if r.get("table") else "(no table: see the stage's output)")
+    pic = pareto(out)
+    if pic:
+        lines += ["", "## Run time against error", "", "![pareto](pareto.png)"]
+    (out / "BENCHMARKS.generated.md").write_text("\n".join(lines) + "\n")
+    summary = {"command": command, "total_s": total, "machine": mach,
+               "stages": {k: {kk: vv for kk, vv in v.items() if kk != "table"} for k, v in done.items()}}
+    (out / "bench_suite.json").write_text(json.dumps(summary, indent=1))
+    echo(f"wrote {out / 'BENCHMARKS.generated.md'}" + (f", {pic}" if pic else "") + f" in {total / 60:.1f} min")
+    return summary
