@@ -105,19 +105,10 @@ class DevicePath:
 
 
 def _occlusion(model):
-    d = mujoco.MjData(model)
-    k = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "occlusion")
-    if k < 0:
-        raise ValueError("the haptic scene needs an 'occlusion' keyframe (the mandible's reference pose)")
-    mujoco.mj_resetDataKeyframe(model, d, k)
-    mujoco.mj_forward(model, d)
-    s = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "hinge")
-    if s < 0:
-        raise ValueError("the haptic scene needs a 'hinge' site on the condylar axis (see mjist.scenes.haptic_jaw_xml)")
-    b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "mandible")
-    axis = d.site_xmat[s].reshape(3, 3)[:, 0].copy()  # the skull's x axis: the hinge axis
-    R_jaw = d.site_xmat[s].reshape(3, 3).copy()  # jaw frame axes in the world
-    return d.xpos[b].copy(), d.xmat[b].reshape(3, 3).copy(), d.site_xpos[s].copy(), axis, R_jaw
+    from .scenes import reference_pose
+
+    pos, _, R, hinge, R_jaw = reference_pose(model)
+    return pos, R, hinge, R_jaw[:, 0].copy(), R_jaw  # the jaw frame's x axis is the hinge axis
 
 
 def scripted(model, name: str, seconds: float | None = None) -> DevicePath:

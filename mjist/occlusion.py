@@ -79,16 +79,10 @@ def scene_for(folder, out_dir) -> Path:
 
 
 def _reference(model):
-    d = mujoco.MjData(model)
-    k = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "occlusion")
-    if k < 0:
-        raise ValueError("the scene needs an 'occlusion' keyframe (the reference mandible pose)")
-    mujoco.mj_resetDataKeyframe(model, d, k)
-    mujoco.mj_forward(model, d)
-    s = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "hinge")
-    if s < 0:
-        raise ValueError("the scene needs a 'hinge' site on the condylar axis (see mjist.scenes.occlusion_search_xml)")
-    return d.qpos[:3].copy(), d.qpos[3:7].copy(), d.site_xpos[s].copy()
+    from .scenes import reference_pose
+
+    pos, quat, _, hinge, _ = reference_pose(model)
+    return pos, quat, hinge
 
 
 def sample_starts(model, n: int, *, translation: float = 2e-3, rotation_deg: float = 3.0, opening_deg: float = 2.0,

@@ -271,3 +271,25 @@ def pair_scene(folder, out_dir, make_xml, filename: str, **kwargs):
     path = Path(out_dir) / filename
     path.write_text(xml)
     return path
+
+
+def reference_pose(model, key: str = "occlusion", body: str = "mandible", site: str = "hinge"):
+    """The mandible at a scene's reference keyframe: body position, quaternion (w-first),
+    rotation matrix, the hinge site's position and its frame (column 0: the hinge axis; the
+    columns are the jaw frame's axes in the world). Raises ``ValueError`` naming what is missing."""
+    import mujoco
+
+    k = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key)
+    s = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+    b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    if k < 0:
+        raise ValueError(f"the scene needs a {key!r} keyframe (the mandible's reference pose)")
+    if s < 0:
+        raise ValueError(f"the scene needs a {site!r} site on the condylar axis (see mjist.scenes)")
+    if b < 0:
+        raise ValueError(f"the scene needs a body named {body!r}")
+    d = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, d, k)
+    mujoco.mj_forward(model, d)
+    return (d.xpos[b].copy(), d.xquat[b].copy(), d.xmat[b].reshape(3, 3).copy(), d.site_xpos[s].copy(),
+            d.site_xmat[s].reshape(3, 3).copy())
