@@ -77,17 +77,24 @@ def _cmd_info(args) -> int:
     return 0
 
 
-def _cmd_demo(args) -> int:
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    from . import demo
+def _user_errors(name: str, run, extra: tuple = ()) -> int:
+    """Run a command; bad input (mesh, config, missing file, bad value) becomes one line and exit 1."""
     from .errors import ConfigError, MeshError
 
     try:
-        return demo.main(scene=args.scene, data=args.data, native=args.native, seconds=args.seconds,
-                         out=args.out_dir, picture=not args.no_picture, max_error=args.max_error, progress=not args.quiet)
-    except (ConfigError, MeshError, FileNotFoundError, ValueError) as exc:
-        print(f"mjist demo: {exc}", file=sys.stderr)
+        return run()
+    except (ConfigError, MeshError, FileNotFoundError, ValueError, *extra) as exc:
+        print(f"mjist {name}: {exc}", file=sys.stderr)
         return 1
+
+
+def _cmd_demo(args) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from . import demo
+
+    return _user_errors("demo", lambda: demo.main(
+        scene=args.scene, data=args.data, native=args.native, seconds=args.seconds, out=args.out_dir,
+        picture=not args.no_picture, max_error=args.max_error, progress=not args.quiet))
 
 
 def _cmd_render(args) -> int:
@@ -119,14 +126,10 @@ def _cmd_render(args) -> int:
 
 def _cmd_view(args) -> int:
     from . import view
-    from .errors import ConfigError, MeshError
 
     try:
-        return view.view(args.scene, depth=args.spheres, key=args.key, native=args.native, control=args.ctrl,
-                         seconds=args.seconds)
-    except (ConfigError, MeshError, FileNotFoundError, ValueError) as exc:
-        print(f"mjist view: {exc}", file=sys.stderr)
-        return 1
+        return _user_errors("view", lambda: view.view(args.scene, depth=args.spheres, key=args.key, native=args.native,
+                                                      control=args.ctrl, seconds=args.seconds))
     except RuntimeError as exc:  # no display: the viewer cannot open a window
         print(f"mjist view: cannot open the viewer ({exc}); on a headless machine use `mjist render`", file=sys.stderr)
         return 1
@@ -134,40 +137,30 @@ def _cmd_view(args) -> int:
 
 def _cmd_haptic(args) -> int:
     from . import haptic
-    from .errors import ConfigError, MeshError
 
-    try:
-        return haptic.main(scene=args.scene, trajectory=args.trajectory, law=args.law, seconds=args.seconds,
-                           out=args.out_dir, progress=not args.quiet, data=args.data)
-    except (ConfigError, MeshError, FileNotFoundError, ValueError, RuntimeError) as exc:
-        print(f"mjist haptic: {exc}", file=sys.stderr)
-        return 1
+    return _user_errors("haptic", lambda: haptic.main(
+        scene=args.scene, trajectory=args.trajectory, law=args.law, seconds=args.seconds, out=args.out_dir,
+        progress=not args.quiet, data=args.data), extra=(RuntimeError,))
 
 
 def _cmd_occlusion(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from . import occlusion
-    from .errors import ConfigError, MeshError
 
-    try:
-        return occlusion.main(scene=args.scene, data=args.data, starts=args.starts, translation_mm=args.translation,
-                              rotation_deg=args.rotation, threads=args.threads, seed=args.seed, top=args.top,
-                              out=args.out_dir, progress=not args.quiet)
-    except (ConfigError, MeshError, FileNotFoundError, ValueError) as exc:
-        print(f"mjist occlusion: {exc}", file=sys.stderr)
-        return 1
+    return _user_errors("occlusion", lambda: occlusion.main(
+        scene=args.scene, data=args.data, starts=args.starts, translation_mm=args.translation, rotation_deg=args.rotation,
+        threads=args.threads, seed=args.seed, top=args.top, out=args.out_dir, progress=not args.quiet))
 
 
 def _cmd_bench(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from . import bench
 
-    try:
+    def run():
         res = bench.run(quick=args.quick, out=args.out_dir, only=args.only.split(",") if args.only else None)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"mjist bench: {exc}", file=sys.stderr)
-        return 1
-    return 0 if all(s["returncode"] == 0 for s in res["stages"].values()) else 1
+        return 0 if all(s["returncode"] == 0 for s in res["stages"].values()) else 1
+
+    return _user_errors("bench", run)
 
 
 def main(argv=None) -> int:
