@@ -2,7 +2,9 @@
 
 Runs the benchmark scripts of ``scripts/`` one after the other, each in its own process (so
 each stage's timings and peak memory are its own): tree builds (``bench_build``), queries
-against coal (``bench_query``), MuJoCo step time against native hull / mesh-SDF / CoACD
+against coal (``bench_query``), the seed paper's Figs. 6-9 with backtracking / multipoint
+speedups in and out of contact (``bench_paper``), scaling with mesh size 10k → 200k
+vertices (``bench_scaling``), MuJoCo step time against native hull / mesh-SDF / CoACD
 (``bench_mujoco``), the haptic loop (``bench_haptic``) and the occlusion search
 (``bench_occlusion``). Then writes into the output folder ``BENCHMARKS.generated.md`` (the
 exact command, machine, versions, wall time per stage and every stage's table) and
@@ -28,6 +30,8 @@ SCRIPTS = ROOT / "scripts"
 STAGES = {
     "build": ("bench_build.py", ["--quick"], [], "dir"),
     "query": ("bench_query.py", ["--quick"], [], "dir"),
+    "paper": ("bench_paper.py", ["--quick"], [], "dir"),
+    "scaling": ("bench_scaling.py", ["--quick"], [], "dir"),
     "mujoco": ("bench_mujoco.py", ["--quick", "--pairs", "bundled"], [], "prefix"),
     "haptic": ("bench_haptic.py", ["--quick"], [], "prefix"),
     "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),

@@ -231,7 +231,7 @@ def main(argv=None) -> int:
     oc.set_defaults(func=_cmd_occlusion)
     bn = sub.add_parser("bench", help="run the benchmark suite; write BENCHMARKS.generated.md and pareto.png")
     bn.add_argument("--quick", action="store_true", help="small sizes, under 5 minutes")
-    bn.add_argument("--only", help="comma-separated stages: build, query, mujoco, haptic, occlusion")
+    bn.add_argument("--only", help="comma-separated stages: build, query, paper, scaling, mujoco, haptic, occlusion")
     bn.add_argument("--out-dir", default="out/bench")
     bn.set_defaults(func=_cmd_bench)
     args = p.parse_args(argv)

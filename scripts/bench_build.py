@@ -34,12 +34,14 @@ CASES = [
 QUICK = {"mandible (bundled, m)": [1e-3], "mandible (real, m)": [1e-3, 4e-4]}
 
 
-def _child(path: str, max_error: float) -> None:
+def _child(path: str, max_error: float, save: str | None = None) -> None:
     import mjist
 
     t = time.perf_counter()
     tree = mjist.build(path, max_error=max_error)
     wall = time.perf_counter() - t
+    if save:
+        tree.save(save)
     s = tree.stats()
     s["wall"] = wall
     s["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -162,7 +164,7 @@ def _plot(rows, path):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 4 and sys.argv[1] == "--child":
-        _child(sys.argv[2], float(sys.argv[3]))
+    if len(sys.argv) in (4, 5) and sys.argv[1] == "--child":  # --child MESH MAX_ERROR [SAVE_TREE]
+        _child(sys.argv[2], float(sys.argv[3]), sys.argv[4] if len(sys.argv) == 5 else None)
         sys.exit(0)
     sys.exit(main())
