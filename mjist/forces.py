@@ -76,6 +76,17 @@ def _rotate(q, x, y, z, out):
     out[2] = z + w * tz + (a * ty - b * tx)
 
 
+@njit(cache=True, inline="always")
+def _unit_quat(q, out):
+    """``out`` = ``q`` / |q|; the identity for a (near) zero quaternion, as ``mju_normalize4``."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if not n > 1e-14:  # also NaN
+        out[0], out[1], out[2], out[3] = 1.0, 0.0, 0.0, 0.0
+        return
+    for r in range(4):
+        out[r] = q[r] / n
+
+
 @njit(cache=True)
 def quat_error(qh, qb, out):
     """Rotation vector θ of ``qh ⊗ conj(qb)`` (shortest way from the body's to the handle's orientation)."""
@@ -246,7 +257,10 @@ def _coupling(E, m, d, row, f, out, now, fresh):
     mq = carray(abi.f64_ptr(abi.load_i64(d + E[E_MOCQUAT])), 4 * E[E_NMOCAP])
     bq = carray(abi.f64_ptr(abi.load_i64(d + E[E_BXQUAT])), 4 * nb)
     ph = mp[3 * mid:3 * mid + 3]
-    qh = mq[4 * mid:4 * mid + 4]
+    # the handle's quaternion as MuJoCo reads it: normalized (a device's integrated orientation
+    # drifts off unit length; MuJoCo normalizes mocap_quat for the kinematics but not in place)
+    qh = f[29:33]
+    _unit_quat(mq[4 * mid:4 * mid + 4], qh)
     # handle velocity: finite difference over one step of simulated time; none after a jump
     # (a reset, a teleported handle, or state inherited by an MjData at a freed one's address:
     # Handle.forget(data) clears it)

@@ -131,3 +131,96 @@ def test_long_jaw_closure_stays_finite_and_shut(cache):
         assert h.stats()["failed"] == 0 and h.stats()["bad_pose"] == 0
     finally:
         h.detach()
+
+
+@pytest.fixture(scope="module")
+def haptic_scene(cache):
+    from mjist import haptic
+
+    model, h = A.load_model(ROOT / "models" / "haptic_jaw.xml", cache_dir=cache)
+    yield model, h, haptic
+    h.detach()
+
+
+def _straight_path(model, haptic, v, start=-4e-3, stop=2e-3, hold=300):
+    """The handle moved straight up (jaw frame) at ``v`` m/s from ``start`` below the occlusion to
+    ``stop`` past it, then held: the mandible hits the maxilla at up to ``v``."""
+    from scipy.spatial.transform import Rotation
+
+    p0, R0, _, _, R_jaw = haptic._occlusion(model)
+    dt = float(model.opt.timestep)
+    s = np.concatenate([np.arange(start, stop, v * dt), np.full(hold, stop)])
+    x, y, z, w = Rotation.from_matrix(R0).as_quat()
+    return haptic.DevicePath(f"straight {v} m/s", p0 + s[:, None] * R_jaw[:, 1], np.tile([w, x, y, z], (len(s), 1)), dt), p0, R_jaw[:, 1]
+
+
+@pytest.mark.stress
+@pytest.mark.parametrize("speed", [0.05, 0.2, 0.5])
+def test_handle_speed_does_not_tunnel(haptic_scene, speed):
+    """The handle slammed into the teeth at up to 0.5 m/s (0.5 mm per 1 ms step): the mandible stops
+    on the maxilla's cusps, its true penetration (coal) stays within the IST depth + ε, then it settles."""
+    from test_haptic import _coal_depth
+
+    model, h, haptic = haptic_scene
+    path, p0, up = _straight_path(model, haptic, speed)
+    log = haptic.run(model, h, path)
+    assert haptic.summary(log)["finite"]
+    off = (log["mandible_pos"] - p0) @ up  # how far past the designed occlusion, upwards
+    assert off.max() < 1.0e-3, f"mandible {off.max() * 1e3:.2f} mm past the occlusion: through the cusps"
+    v = np.linalg.norm(np.diff(log["mandible_pos"], axis=0), axis=1) / path.dt
+    assert v.max() > 0.8 * speed  # the impact really was at that speed
+    # the deepest step, against coal's exact meshes
+    gmx, gmd = h.geoms["maxilla"], h.geoms["mandible"]
+    bvh = [jawmod.coal_bvh(*A.mesh_of(model, g)) for g in (gmx, gmd)]
+    d = mujoco.MjData(model)
+    mujoco.mj_forward(model, d)
+    Pmx = np.eye(4)
+    Pmx[:3, :3] = d.geom_xmat[gmx].reshape(3, 3)
+    Pmx[:3, 3] = d.geom_xpos[gmx]
+    i = int(np.argmax(log["depth"]))
+    Pmd = haptic.geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
+    depth = _coal_depth(bvh, Pmx, Pmd)
+    assert depth <= log["depth"][i] + h.pairs[0].error_bound and depth < 1.5e-3
+    assert log["contacts"][-1] > 0 and v[-50:].max() < 0.05  # resting on the teeth, not bouncing off
+
+
+def _drifted(path, haptic, amp=0.05):
+    """The same device path with the handle quaternion's norm drifting by up to ``amp``
+    (a device orientation integrated without renormalisation)."""
+    n = path.steps
+    k = 1.0 + amp * np.sin(np.linspace(0.0, 7.0, n))
+    return haptic.DevicePath(path.name + " (drifting quaternion)", path.pos.copy(), path.quat * k[:, None], path.dt)
+
+
+@pytest.mark.stress
+def test_handle_quaternion_drift_changes_nothing(haptic_scene):
+    """A handle quaternion off unit length (±5 %) gives the same coupling and motion as the unit one."""
+    model, h, haptic = haptic_scene
+    path = haptic.scripted(model, "chewing", 2.0)
+    a = haptic.run(model, h, path)
+    b = haptic.run(model, h, _drifted(path, haptic))
+    # equal up to rounding (a drifted quaternion normalizes to within an ulp of the unit one)
+    assert np.abs(a["coupling_force"] - b["coupling_force"]).max() < 1e-6  # N; the forces are ~1 N
+    assert np.abs(a["mandible_pos"] - b["mandible_pos"]).max() < 1e-9  # m
+    # a zero quaternion (a device glitch) is read as the identity, as MuJoCo does: finite, no raise
+    z = haptic.DevicePath("zero quat", path.pos[:50].copy(), np.zeros((50, 4)), path.dt)
+    assert haptic.summary(haptic.run(model, h, z))["finite"]
+
+
+@pytest.mark.stress
+def test_long_haptic_chewing_has_no_energy_growth(haptic_scene):
+    """10⁵ steps (100 s) of chewing cycles in contact with a drifting handle quaternion: finite,
+    and the last cycles move and push no harder than the first ones (~6 s of wall time)."""
+    model, h, haptic = haptic_scene
+    secs = 100.0
+    path = _drifted(haptic.scripted(model, "chewing", secs), haptic)
+    log = haptic.run(model, h, path)
+    s = haptic.summary(log)
+    assert s["finite"] and np.all(np.isfinite(log["_data"].qpos)) and s["contact_steps"] > 0.1 * path.steps
+    per = int(round(2.0 / path.dt))  # the chewing pattern repeats every 2 s (left, right)
+    cycles = path.steps // per
+    speed = np.linalg.norm(np.diff(log["mandible_pos"], axis=0), axis=1) / path.dt
+    vmax = [speed[c * per:(c + 1) * per - 1].max() for c in range(cycles)]
+    fmax = [np.linalg.norm(log["contact_force"][c * per:(c + 1) * per], axis=1).max() for c in range(cycles)]
+    assert max(vmax[-3:]) <= 1.05 * max(vmax[1:4]), vmax
+    assert max(fmax[-3:]) <= 1.2 * max(fmax[1:4]), fmax
