@@ -56,6 +56,7 @@ def build(
     branching: int = 4,
     seed: int = 0,
     repair: bool = False,
+    min_coverage: float | None = None,
     progress: bool = False,
 ) -> InnerSphereTree:
     """Build an Inner Sphere Tree of a closed triangle mesh.
@@ -77,6 +78,12 @@ def build(
         Seed of the clustering; same mesh + parameters + seed gives the same tree.
     repair : bool
         Let trimesh fix degenerate faces, winding, inversion and holes (see ``load_mesh``).
+    min_coverage : float, optional
+        Also fill the interior gaps between spheres, level by level, until the leaves fill
+        this fraction of the mesh volume (e.g. 0.9) or the lattice reaches the resolution the
+        surface needs. Without it only the band near the surface is refined (what distance
+        queries need); the interior fill adds many small deep leaves and makes the
+        penetration volume closer to the true overlap volume.
     progress : bool
         Show a progress bar per stage on stderr.
 
@@ -96,6 +103,8 @@ def build(
         raise ValueError(f"branching={branching} must be between 2 and 16")
     if leaves is not None and int(leaves) < 1:
         raise ValueError(f"leaves={leaves} must be at least 1")
+    if min_coverage is not None and not 0.0 < float(min_coverage) < 1.0:
+        raise ValueError(f"min_coverage={min_coverage} must be a fraction of the volume in (0, 1), e.g. 0.9")
     timings: dict[str, float] = {}
     bar = _Progress(progress, 5)
     t0 = time.perf_counter()
@@ -138,8 +147,13 @@ def build(
     t_vox += time.perf_counter() - tv
     tp = time.perf_counter()
     keys = encode(np.rint((P - vox.origin) / h0).astype(np.int64))
-    C, R = greedy_pack(P, D.copy(), keys, vox.origin, h0, 0.5 * h0, max_leaves, SHRINK)
+    f = D.copy()
+    C, R = greedy_pack(P, f, keys, vox.origin, h0, 0.5 * h0, max_leaves, SHRINK)
     t_pack += time.perf_counter() - tp
+    # interior fill: lattice points left in the gaps between spheres seed the next level
+    fill = min_coverage is not None
+    filled = 4.0 / 3.0 * np.pi * float(np.sum(R**3))
+    gaps = P[f >= 0.25 * h0] if fill else np.empty((0, 3))
     levels = 0
     certified = np.inf  # best bound so far (stays valid as spheres are added)
     for level in range(1, MAX_LEVELS + 1):
@@ -154,13 +168,18 @@ def build(
             ub, seeds = np.inf, m.vertices[m.faces].mean(axis=1)
         t_cert += time.perf_counter() - tc
         certified = min(certified, ub)
-        if ub <= target or len(seeds) == 0:
+        surface_done = ub <= target or len(seeds) == 0
+        if surface_done:
+            seeds = seeds[:0]
+        if fill and (filled >= min_coverage * m.volume or (surface_done and h < 0.5 * target)):
+            gaps = gaps[:0]  # covered enough, or finer than the surface itself needs
+        if len(seeds) == 0 and len(gaps) == 0:
             break
         if h < 1e-7 * diag:
             break
         tv = time.perf_counter()
         r_min = 0.5 * h
-        P = vox.band(level, seeds, BAND_WIDTH * h)
+        P = vox.band(level, np.concatenate([seeds, gaps]) if len(gaps) else seeds, BAND_WIDTH * h)
         if len(P) > MAX_BAND_POINTS:
             warnings.warn(
                 f"lattice level {level} would need {len(P)} band points (limit {MAX_BAND_POINTS}); "
@@ -170,12 +189,17 @@ def build(
             )
             break
         f = band_free_distance(P, vox, C, R, r_min)
+        if fill:  # points too tight for this level may hold a sphere of the next one
+            gaps = P[(f >= 0.5 * r_min) & (f < r_min)]
         keep = f >= r_min
         P, f = P[keep], f[keep]
         t_vox += time.perf_counter() - tv
         tp = time.perf_counter()
         keys = encode(np.rint((P - vox.origin) / h).astype(np.int64))
         Cn, Rn = greedy_pack(P, f, keys, vox.origin, h, r_min, max_leaves - len(R), SHRINK)
+        if fill:
+            gaps = np.concatenate([gaps, P[f >= 0.5 * r_min]])
+            filled += 4.0 / 3.0 * np.pi * float(np.sum(Rn**3))
         C = np.concatenate([C, Cn])
         R = np.concatenate([R, Rn])
         t_pack += time.perf_counter() - tp
@@ -212,13 +236,22 @@ def build(
             RuntimeWarning,
             stacklevel=2,
         )
+    if fill and filled < min_coverage * m.volume and len(R) < max_leaves:
+        warnings.warn(
+            f"min_coverage={min_coverage:g} not reached: the leaves fill {filled / m.volume:.1%} of the volume "
+            f"({len(R)} leaves) when the lattice reached the surface's resolution; the gaps left are finer "
+            "than max_error (pass a smaller max_error to fill further)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return InnerSphereTree(
         **arrays,
         error_bound=float(eps),
         error_lower=float(eps_lo),
         mesh_volume=m.volume,
         mesh_hash=m.content_hash,
-        params={"max_error": max_error, "leaves": leaves, "branching": int(branching), "seed": int(seed), "repair": bool(repair)},
+        params={"max_error": max_error, "leaves": leaves, "branching": int(branching), "seed": int(seed), "repair": bool(repair),
+                "min_coverage": None if min_coverage is None else float(min_coverage)},
         timings=timings,
         info={
             "mesh_vertices": int(len(m.vertices)),
@@ -273,6 +306,14 @@ def sphere_tree(centers, radii, *, branching: int = 4, seed: int = 0) -> InnerSp
         raise ValueError(f"branching={branching} must be between 2 and 16")
     arrays = _assemble(C, R, int(branching), int(seed))
     h = hashlib.sha256(C.tobytes() + R.tobytes()).hexdigest()
+    if fill and filled < min_coverage * m.volume and len(R) < max_leaves:
+        warnings.warn(
+            f"min_coverage={min_coverage:g} not reached: the leaves fill {filled / m.volume:.1%} of the volume "
+            f"({len(R)} leaves) when the lattice reached the surface's resolution; the gaps left are finer "
+            "than max_error (pass a smaller max_error to fill further)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return InnerSphereTree(
         **arrays,
         error_bound=0.0,

@@ -22,11 +22,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"
 
-# (label, path, max_error values in mesh units)
+# (label, path, max_error values in mesh units; (max_error, min_coverage) also fills the interior)
 CASES = [
-    ("mandible (bundled, m)", ROOT / "models" / "mandible.obj", [4e-4, 2e-4]),
+    ("mandible (bundled, m)", ROOT / "models" / "mandible.obj", [4e-4, 2e-4, (5e-4, 0.9)]),
     ("maxilla (bundled, m)", ROOT / "models" / "maxilla.obj", [4e-4, 2e-4]),
-    ("mandible (real, m)", SHARED / "jaw" / "mandible.obj", [1e-3, 4e-4, 2e-4, 1e-4]),
+    ("mandible (real, m)", SHARED / "jaw" / "mandible.obj", [1e-3, 4e-4, 2e-4, 1e-4, (4e-4, 0.9)]),
     ("maxilla (real, m)", SHARED / "jaw" / "maxilla.obj", [1e-3, 4e-4, 2e-4]),
     ("bunny (mm)", SHARED / "stanford" / "bunny.obj", [2.0, 1.0, 0.5]),
     ("dragon (unitless)", SHARED / "stanford" / "dragon.obj", [0.01, 0.005]),
@@ -34,11 +34,11 @@ CASES = [
 QUICK = {"mandible (bundled, m)": [1e-3], "mandible (real, m)": [1e-3, 4e-4]}
 
 
-def _child(path: str, max_error: float, save: str | None = None) -> None:
+def _child(path: str, max_error: float, save: str | None = None, min_coverage: float | None = None) -> None:
     import mjist
 
     t = time.perf_counter()
-    tree = mjist.build(path, max_error=max_error)
+    tree = mjist.build(path, max_error=max_error, min_coverage=min_coverage)
     wall = time.perf_counter() - t
     if save:
         tree.save(save)
@@ -81,23 +81,25 @@ def main() -> int:
             continue
         coal_t = _coal_bvh_time(str(path))
         for e in errs:
-            cmd = [sys.executable, __file__, "--child", str(path), repr(e)]
+            e, fill = e if isinstance(e, tuple) else (e, None)
+            cmd = [sys.executable, __file__, "--child", str(path), repr(e), "-"] + ([repr(fill)] if fill else [])
+            label_run = label + (f" fill→{fill:g}" if fill else "")
             try:
                 p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
             except subprocess.TimeoutExpired:
-                rows.append({"mesh": label, "max_error": e, "error": f"timeout {args.timeout}s"})
-                print(f"{label:22s} ε≤{e:<8g} timeout")
+                rows.append({"mesh": label_run, "max_error": e, "error": f"timeout {args.timeout}s"})
+                print(f"{label_run:22s} ε≤{e:<8g} timeout")
                 continue
             line = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
             if not line:
-                rows.append({"mesh": label, "max_error": e, "error": p.stderr[-2000:]})
-                print(f"{label:22s} ε≤{e:<8g} failed: {p.stderr[-300:]}")
+                rows.append({"mesh": label_run, "max_error": e, "error": p.stderr[-2000:]})
+                print(f"{label_run:22s} ε≤{e:<8g} failed: {p.stderr[-300:]}")
                 continue
             s = json.loads(line[0][7:])
-            s.update(mesh=label, path=str(path), max_error=e, coal_bvh_build_s=coal_t)
+            s.update(mesh=label_run, min_coverage=fill, path=str(path), max_error=e, coal_bvh_build_s=coal_t)
             rows.append(s)
             print(
-                f"{label:22s} ε≤{e:<8g} ε={s['error_bound']:.3g} leaves={s['leaves']:>8d} depth={s['depth']:>2d} "
+                f"{label_run:22s} ε≤{e:<8g} ε={s['error_bound']:.3g} leaves={s['leaves']:>8d} depth={s['depth']:>2d} "
                 f"coverage={100 * s['coverage']:.1f}% wall={s['wall']:.1f}s peak={s['peak_rss_mb']:.0f}MB "
                 f"(coal BVH {coal_t * 1e3:.0f} ms)",
                 flush=True,
@@ -164,7 +166,8 @@ def _plot(rows, path):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) in (4, 5) and sys.argv[1] == "--child":  # --child MESH MAX_ERROR [SAVE_TREE]
-        _child(sys.argv[2], float(sys.argv[3]), sys.argv[4] if len(sys.argv) == 5 else None)
+    if 4 <= len(sys.argv) <= 6 and sys.argv[1] == "--child":  # --child MESH MAX_ERROR [SAVE_TREE|-] [MIN_COVERAGE]
+        a = sys.argv + [None] * (6 - len(sys.argv))
+        _child(a[2], float(a[3]), a[4] if a[4] not in (None, "-") else None, float(a[5]) if a[5] else None)
         sys.exit(0)
     sys.exit(main())

@@ -38,15 +38,16 @@ SHAPES = {
     "box": (box, 0.08),
     "torus": (torus, 0.04),
     "two_shells": (two_shells, 0.05),
+    "torus_filled": (torus, 0.04, {"min_coverage": 0.82}),  # interior gaps filled too
 }
 _cache = {}
 
 
 def built(name):
     if name not in _cache:
-        make, err = SHAPES[name]
+        make, err, *kw = SHAPES[name]
         mesh = make()
-        _cache[name] = (mesh, mjist.build(mesh, max_error=err))
+        _cache[name] = (mesh, mjist.build(mesh, max_error=err, **(kw[0] if kw else {})))
     return _cache[name]
 
 
@@ -136,6 +137,19 @@ def test_determinism_and_seed():
     c = mjist.build(mesh, max_error=0.06, seed=4)
     # same packing, different clustering
     assert np.array_equal(np.sort(a.leaf_radii), np.sort(c.leaf_radii))
+
+
+def test_interior_fill_raises_coverage():
+    """min_coverage fills the gaps between the interior spheres: more volume, same surface bound."""
+    plain = built("torus")[1]
+    filled = built("torus_filled")[1]
+    assert filled.coverage >= 0.82 > plain.coverage + 0.03
+    assert filled.num_leaves > plain.num_leaves
+    assert filled.error_bound <= SHAPES["torus_filled"][1]
+    with pytest.raises(ValueError, match="min_coverage"):
+        mjist.build(torus(), max_error=0.04, min_coverage=1.5)
+    with pytest.warns(RuntimeWarning, match="not reached"):  # a target the surface's resolution cannot reach
+        mjist.build(torus(), max_error=0.1, min_coverage=0.99)
 
 
 def test_leaves_limit_stops_packing_largest_first():
