@@ -120,7 +120,9 @@ def plot(rows, path):
     ax2 = ax[2].twinx()
     ax2.semilogx(v, [r["builds"]["mandible"]["peak_rss_mb"] for r in rows], "s--", color="C1", label="peak RSS MB")
     ax[2].set(xlabel="vertices per jaw", ylabel="leaves", title="leaves and memory vs mesh size")
+    ax[2].set_ylim(bottom=0)
     ax2.set_ylabel("peak RSS (MB)")
+    ax2.set_ylim(bottom=0)
     for a in ax:
         a.grid(True, which="both", alpha=0.3)
         a.legend(fontsize=8, loc="upper left")

@@ -131,6 +131,13 @@ def _pose_pair(sa, sb, qa, qb, u, rel, frac):
     return Pa, Pb
 
 
+def _nested(ma, Pa, mb, Pb):
+    """Does a shell of one solid lie inside the other (no surface crossing needed)?"""
+    A = ma.copy().apply_transform(Pa)
+    B = mb.copy().apply_transform(Pb)
+    return bool(A.contains(B.vertices).any() or B.contains(A.vertices).any())
+
+
 def _inside(mesh, P, pts):
     m = mesh.copy()
     m.apply_transform(P)
@@ -147,6 +154,11 @@ def test_every_query_against_coal(ia, ib, qa, qb, u, rel, frac, warm):
     _, mb, tb, bb, _ = sb
     Pa, Pb = _pose_pair(sa, sb, qa, qb, u, rel, frac)
     dc, coll = _coal(ba, Pa, bb, Pb)
+    # coal collides surfaces: a shell wholly inside the other solid is "apart" for it, yet the
+    # solids overlap (true distance 0), which is what inner spheres see
+    if not coll and _nested(ma, Pa, mb, Pb):
+        dc, coll = 0.0, True
+        event("nested without surface contact (solids overlap, coal's surfaces apart)")
     truth = max(dc, 0.0)
     scale = 1.0  # the pool's shapes are unit-sized: float tolerance in absolute terms
     q = Query(ta, tb, max_contacts=6)
@@ -260,3 +272,37 @@ def test_awkward_geometry_builds_a_sound_tree(name):
                 hits += 1
                 assert coll
     assert hits > 0
+
+
+def test_a_solid_wholly_inside_another_overlaps():
+    """Deeply nested: a ball wholly inside a box. coal's mesh distance measures the surfaces (apart),
+    the inner spheres measure the solids: overlap, contacts, and a penetration volume close to the
+    ball's covered volume."""
+    box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    ball = trimesh.creation.icosphere(3, radius=0.3)
+    ta, tb = mjist.build(box, max_error=0.05), mjist.build(ball, max_error=0.02)
+    q = Query(ta, tb)
+    I = np.eye(4)
+    P = np.eye(4)
+    P[:3, 3] = [0.2, -0.1, 0.3]
+    bb = coal.BVHModelOBBRSS()
+    bb.beginModel(len(ball.faces), len(ball.vertices))
+    bb.addVertices(np.asarray(ball.vertices, float))
+    bb.addTriangles(np.asarray(ball.faces, np.int64))
+    bb.endModel()
+    bx = coal.BVHModelOBBRSS()
+    bx.beginModel(len(box.faces), len(box.vertices))
+    bx.addVertices(np.asarray(box.vertices, float))
+    bx.addTriangles(np.asarray(box.faces, np.int64))
+    bx.endModel()
+    d, coll = _coal(bx, I, bb, P)
+    assert d > 0.3 and not coll  # coal: the surfaces are apart
+    assert _nested(box, I, ball, P)
+    r = q.distance(I, P)
+    assert r.colliding and r.distance == 0.0
+    assert q.contacts(I, P).count > 0
+    v = q.penetration_volume(I, P).volume
+    # the box's largest leaf (its inscribed ball, radius ~1) holds the whole ball: every ball leaf's
+    # lens with it is the leaf itself, so the volume is the ball's covered volume
+    assert ta.leaf_radii.max() > np.linalg.norm(P[:3, 3]) + 0.3
+    assert v == pytest.approx(tb.coverage * ball.volume, rel=1e-9)
