@@ -21,10 +21,12 @@ import sys
 import time
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
-import mjist
-from mjist import jaw
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import mjist  # noqa: E402
+from mjist import jaw  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_JAW = ROOT.parent / "shared" / "data" / "jaw"
@@ -69,6 +71,77 @@ def stats(ts):
     return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)), "mean_us": float(np.mean(ts))}
 
 
+DISTMAX = 0.05  # m: MuJoCo's distance queries look this far (the motion opens the jaw ~10 mm)
+
+
+def _mujoco_pair(parts_a, parts_b):
+    """A model with the maxilla's convex pieces fixed and the mandible's on a mocap body."""
+    spec = mujoco.MjSpec()
+    mocap = spec.worldbody.add_body(name="mandible", mocap=True)
+    ids = ([], [])
+    for k, (parts, body) in enumerate(((parts_a, spec.worldbody), (parts_b, mocap))):
+        for i, (V, F) in enumerate(parts):
+            name = f"{'ab'[k]}{i}"
+            spec.add_mesh(name=name, uservert=np.asarray(V, float).ravel().tolist(), userface=np.asarray(F, int).ravel().tolist())
+            body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, contype=0, conaffinity=0)
+    m = spec.compile()
+    for g in range(m.ngeom):
+        ids[0 if m.geom_bodyid[g] == 0 else 1].append(g)
+    return m, mujoco.MjData(m), np.array(ids[0]), np.array(ids[1])
+
+
+def mujoco_reference(name, parts_a, parts_b, poses):
+    """MuJoCo's own distance on the same frames: ``mj_geomDistance`` between convex pieces
+    (one piece = the convex hull, as MuJoCo collides meshes; several = a CoACD decomposition,
+    pairs pruned by their bounding spheres as a broad phase would). Times exclude kinematics."""
+    m, d, ga, gb = _mujoco_pair(parts_a, parts_b)
+    t = np.empty(len(poses))
+    dist = np.empty(len(poses))
+    for k, P in enumerate(poses):
+        d.mocap_pos[0] = P[:3, 3]
+        mujoco.mju_mat2Quat(d.mocap_quat[0], P[:3, :3].ravel())
+        mujoco.mj_kinematics(m, d)
+        t0 = time.perf_counter_ns()
+        best = DISTMAX
+        if len(ga) * len(gb) > 1:
+            ca, cb = d.geom_xpos[ga], d.geom_xpos[gb]
+            lb = np.linalg.norm(ca[:, None] - cb[None], axis=2) - m.geom_rbound[ga][:, None] - m.geom_rbound[gb][None]
+            for i, j in zip(*np.nonzero(lb < best)):
+                if lb[i, j] < best:
+                    best = min(best, mujoco.mj_geomDistance(m, d, ga[i], gb[j], best, None))
+        else:
+            best = mujoco.mj_geomDistance(m, d, ga[0], gb[0], DISTMAX, None)
+        t[k] = (time.perf_counter_ns() - t0) * 1e-3
+        dist[k] = best
+    return {"name": name, "pieces": [len(parts_a), len(parts_b)], **stats(t), "distance": dist.tolist()}
+
+
+def references(mx, md, poses, truth, coacd_cache):
+    """Convex hull (MuJoCo's mesh collision) and, with ``coacd`` installed, CoACD pieces."""
+    hull = [(mx.trimesh().convex_hull.vertices, mx.trimesh().convex_hull.faces)], [(md.trimesh().convex_hull.vertices, md.trimesh().convex_hull.faces)]
+    out = {"mujoco hull": mujoco_reference("mujoco hull", *hull, poses)}
+    try:
+        import coacd  # noqa: F401
+    except ImportError:
+        print("  (CoACD reference skipped: pip install -e '.[bench]')", flush=True)
+    else:
+        from bench_mujoco import coacd_pieces
+
+        pa, sa = coacd_pieces(mx.vertices, mx.faces, 0.05, coacd_cache)
+        pb, sb = coacd_pieces(md.vertices, md.faces, 0.05, coacd_cache)
+        out["mujoco coacd"] = mujoco_reference("mujoco coacd", pa, pb, poses)
+        out["mujoco coacd"]["decompose_s"] = sa + sb
+    for name, r in out.items():
+        dm = np.array(r["distance"])
+        valid = truth < DISTMAX  # MuJoCo reports at most DISTMAX
+        err = np.abs(np.maximum(dm, 0.0) - truth)[valid]
+        r.update(err_max=float(err.max()), err_median=float(np.median(err)),
+                 false_contacts=int(np.sum((dm <= 0) & (truth > 0))), missed_contacts=int(np.sum((dm > 0) & (truth <= 0))))
+        print(f"  {name:14s} median {r['median_us']:8.1f} µs  max |err| {r['err_max'] * 1e3:.3f} mm  "
+              f"false contacts {r['false_contacts']} / {len(truth)}", flush=True)
+    return out
+
+
 def run_pair(label, folder, eps_list, frames, cache):
     mx, md, info = jaw.load_pair(folder)
     paths = (Path(info["paths"]["maxilla"]), Path(info["paths"]["mandible"]))
@@ -93,6 +166,7 @@ def run_pair(label, folder, eps_list, frames, cache):
         "coal": {**stats(coal_t), "colliding_frames": int((coal_d <= 0).sum())},
         "coal_times": coal_t.tolist(), "coal_distance": coal_d.tolist(), "levels": [],
     }
+    res["references"] = references(mx, md, poses, truth, cache.parent / "coacd")
     for eps in eps_list:
         ta, _ = tree_for(paths[0], eps, f"{label}_maxilla", cache)
         tb, _ = tree_for(paths[1], eps, f"{label}_mandible", cache)
@@ -236,6 +310,9 @@ def markdown(results, meta):
                     f"| {s.get('speedup_vs_coal', float('nan')):.0f} | {s.get('err_max', float('nan')) * 1e3:.3f} | {s.get('bound_violations', '')} |"
                 )
         lines.append(f"| {label} | exact | | | coal distance | {r['coal']['median_us']:.0f} | {r['coal']['p99_us']:.0f} | | 1 | 0 | |")
+        for name, x in r.get("references", {}).items():
+            lines.append(f"| {label} | (none) | {x['pieces'][0]} / {x['pieces'][1]} pieces | | {name} | {x['median_us']:.1f} | {x['p99_us']:.1f} | "
+                         f"| {r['coal']['median_us'] / x['median_us']:.0f} | {x['err_max'] * 1e3:.3f} | {x['false_contacts']} false contacts |")
     return "\n".join(lines) + "\n"
 
 
