@@ -306,14 +306,6 @@ def sphere_tree(centers, radii, *, branching: int = 4, seed: int = 0) -> InnerSp
         raise ValueError(f"branching={branching} must be between 2 and 16")
     arrays = _assemble(C, R, int(branching), int(seed))
     h = hashlib.sha256(C.tobytes() + R.tobytes()).hexdigest()
-    if fill and filled < min_coverage * m.volume and len(R) < max_leaves:
-        warnings.warn(
-            f"min_coverage={min_coverage:g} not reached: the leaves fill {filled / m.volume:.1%} of the volume "
-            f"({len(R)} leaves) when the lattice reached the surface's resolution; the gaps left are finer "
-            "than max_error (pass a smaller max_error to fill further)",
-            RuntimeWarning,
-            stacklevel=2,
-        )
     return InnerSphereTree(
         **arrays,
         error_bound=0.0,

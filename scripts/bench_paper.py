@@ -21,7 +21,6 @@ Writes ``bench_paper.json``, ``bench_paper.png`` and ``bench_paper.md`` into ``-
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -31,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_query import CLENCH, pairs_available, stats, timed  # noqa: E402
+from bench_query import CLENCH, pairs_available, stats, timed, write_outputs  # noqa: E402
 
 import mjist  # noqa: E402
 from mjist import jaw  # noqa: E402
@@ -278,12 +277,7 @@ def main(argv=None):
     meta = {"frames": cfg["frames"], "config": cfg, "seconds": time.perf_counter() - t0,
             "command": "python scripts/bench_paper.py" + (" --quick" if a.quick else ""),
             "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"}
-    (out / "bench_paper.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
-    plot(results, out / "bench_paper.png")
-    md = markdown(results, meta)
-    (out / "bench_paper.md").write_text(md)
-    print(md)
-    print(f"wrote {out / 'bench_paper.json'}, {out / 'bench_paper.png'}, {out / 'bench_paper.md'}")
+    write_outputs(out, "bench_paper", {"meta": meta, "results": results}, lambda path: plot(results, path), markdown(results, meta))
     return 0
 
 

@@ -67,6 +67,15 @@ def timed(fn, poses):
     return ts, vals
 
 
+def write_outputs(out: Path, name: str, payload: dict, plot, md: str) -> None:
+    """``name``.json (``payload``), ``name``.png (``plot(path)``) and ``name``.md into ``out``; echo the table."""
+    (out / f"{name}.json").write_text(json.dumps(payload, indent=1))
+    plot(out / f"{name}.png")
+    (out / f"{name}.md").write_text(md)
+    print(md)
+    print(f"wrote {out / name}.json, .png and .md")
+
+
 def stats(ts):
     return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)), "mean_us": float(np.mean(ts))}
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_query import CLENCH, stats, timed  # noqa: E402
+from bench_query import CLENCH, stats, timed, write_outputs  # noqa: E402
 
 import mjist  # noqa: E402
 from mjist import jaw, jawmodel  # noqa: E402
@@ -166,12 +166,7 @@ def main(argv=None):
     meta = {**cfg, "seconds": time.perf_counter() - t0,
             "command": "python scripts/bench_scaling.py" + (" --quick" if a.quick else ""),
             "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"}
-    (out / "bench_scaling.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    plot(rows, out / "bench_scaling.png")
-    md = markdown(rows, meta)
-    (out / "bench_scaling.md").write_text(md)
-    print(md)
-    print(f"wrote {out / 'bench_scaling.json'}, {out / 'bench_scaling.png'}, {out / 'bench_scaling.md'}")
+    write_outputs(out, "bench_scaling", {"meta": meta, "rows": rows}, lambda path: plot(rows, path), markdown(rows, meta))
     return 0
 
 

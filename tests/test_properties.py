@@ -63,13 +63,17 @@ def _shape(i):
         name, m = POOL[i]
         size = float(np.min(m.extents))
         t = mjist.build(m, max_error=0.08 * size)
-        b = coal.BVHModelOBBRSS()
-        b.beginModel(len(m.faces), len(m.vertices))
-        b.addVertices(np.asarray(m.vertices, dtype=np.float64))
-        b.addTriangles(np.asarray(m.faces, dtype=np.int64))
-        b.endModel()
-        _BUILT[i] = (name, m, t, b, float(np.linalg.norm(m.vertices, axis=1).max()))
+        _BUILT[i] = (name, m, t, _bvh(m), float(np.linalg.norm(m.vertices, axis=1).max()))
     return _BUILT[i]
+
+
+def _bvh(mesh):
+    b = coal.BVHModelOBBRSS()
+    b.beginModel(len(mesh.faces), len(mesh.vertices))
+    b.addVertices(np.asarray(mesh.vertices, dtype=np.float64))
+    b.addTriangles(np.asarray(mesh.faces, dtype=np.int64))
+    b.endModel()
+    return b
 
 
 def _tf(P):
@@ -244,16 +248,7 @@ def test_awkward_geometry_builds_a_sound_tree(name):
     # a probe sphere brought to the part from several sides: interval vs coal
     probe = trimesh.creation.icosphere(2, radius=0.5 * float(np.min(m.extents)) + 0.5)
     tp = mjist.build(probe, max_error=0.1 * float(np.min(probe.extents)))
-    bm = coal.BVHModelOBBRSS()
-    bm.beginModel(len(m.faces), len(m.vertices))
-    bm.addVertices(np.asarray(m.vertices, float))
-    bm.addTriangles(np.asarray(m.faces, np.int64))
-    bm.endModel()
-    bp = coal.BVHModelOBBRSS()
-    bp.beginModel(len(probe.faces), len(probe.vertices))
-    bp.addVertices(np.asarray(probe.vertices, float))
-    bp.addTriangles(np.asarray(probe.faces, np.int64))
-    bp.endModel()
+    bm, bp = _bvh(m), _bvh(probe)
     q = Query(t, tp)
     rng = np.random.default_rng(3)
     I = np.eye(4)
@@ -285,16 +280,7 @@ def test_a_solid_wholly_inside_another_overlaps():
     I = np.eye(4)
     P = np.eye(4)
     P[:3, 3] = [0.2, -0.1, 0.3]
-    bb = coal.BVHModelOBBRSS()
-    bb.beginModel(len(ball.faces), len(ball.vertices))
-    bb.addVertices(np.asarray(ball.vertices, float))
-    bb.addTriangles(np.asarray(ball.faces, np.int64))
-    bb.endModel()
-    bx = coal.BVHModelOBBRSS()
-    bx.beginModel(len(box.faces), len(box.vertices))
-    bx.addVertices(np.asarray(box.vertices, float))
-    bx.addTriangles(np.asarray(box.faces, np.int64))
-    bx.endModel()
+    bb, bx = _bvh(ball), _bvh(box)
     d, coll = _coal(bx, I, bb, P)
     assert d > 0.3 and not coll  # coal: the surfaces are apart
     assert _nested(box, I, ball, P)
