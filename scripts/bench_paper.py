@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_query import CLENCH, pairs_available, stats, timed, write_outputs  # noqa: E402
+from bench_query import CLENCH, coal_replay, pairs_available, stats, timed, write_outputs  # noqa: E402
 
 import mjist  # noqa: E402
 from mjist import jaw  # noqa: E402
@@ -103,13 +103,7 @@ def run_pair(label, folder, cfg, cache):
     bx, bd = jaw.coal_bvh(mx.vertices, mx.faces), jaw.coal_bvh(md.vertices, md.faces)
     touch = float(info["mandible_pose"][1, 3])
     poses = jaw.chewing_motion(cfg["frames"], info["hinge"], contact_offset=touch + CLENCH)
-    I = np.eye(4)
-    coal_t = np.empty(len(poses))
-    coal_d = np.empty(len(poses))
-    for k, P in enumerate(poses):
-        t0 = time.perf_counter_ns()
-        coal_d[k] = jaw.coal_distance(bx, I, bd, P)
-        coal_t[k] = (time.perf_counter_ns() - t0) * 1e-3
+    coal_t, coal_d = coal_replay(bx, bd, poses)
     truth = np.maximum(coal_d, 0.0)
     contact = coal_d <= 0
     res = {"vertices": [int(len(mx.vertices)), int(len(md.vertices))], "frames": len(poses),

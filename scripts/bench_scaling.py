@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_query import CLENCH, stats, timed, write_outputs  # noqa: E402
+from bench_query import CLENCH, coal_replay, stats, timed, write_outputs  # noqa: E402
 
 import mjist  # noqa: E402
 from mjist import jaw, jawmodel  # noqa: E402
@@ -73,12 +73,7 @@ def run_resolution(spacing: float, cfg: dict, work: Path, timeout: float) -> dic
     touch = jaw.touching_offset(bx, bd)
     poses = jaw.chewing_motion(cfg["frames"], np.array(meta["hinge"]), contact_offset=touch + CLENCH)
     I = np.eye(4)
-    coal_t = np.empty(len(poses))
-    coal_d = np.empty(len(poses))
-    for k, P in enumerate(poses):
-        t0 = time.perf_counter_ns()
-        coal_d[k] = jaw.coal_distance(bx, I, bd, P)
-        coal_t[k] = (time.perf_counter_ns() - t0) * 1e-3
+    coal_t, coal_d = coal_replay(bx, bd, poses)
     truth = np.maximum(coal_d, 0.0)
     q = mjist.Query(ta, tb)
     row["error_bound"] = q.error_bound
