@@ -136,15 +136,16 @@ def _certify_triangle(a0, b0, c0, C, R, lo, hi, left, right, start, count, order
 
 
 @njit(cache=True, parallel=True)
-def _certify_all(V, F, C, R, lo, hi, left, right, start, count, order, target, min_size):
-    nf = F.shape[0]
+def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size):
+    nf = faces.shape[0]
     ub = np.empty(nf)
     lb = np.empty(nf)
     nbad = np.empty(nf, np.int64)
     dummy = np.empty((0, 3))
-    for f in prange(nf):
+    for t in prange(nf):
+        f = faces[t]
         stack = np.empty(STACK, np.int64)
-        ub[f], lb[f], nbad[f] = _certify_triangle(
+        ub[t], lb[t], nbad[t] = _certify_triangle(
             V[F[f, 0]], V[F[f, 1]], V[F[f, 2]], C, R, lo, hi, left, right, start, count, order,
             target, min_size, stack, dummy, False,
         )
@@ -179,18 +180,34 @@ def certify(V, F, C, R, target: float, min_size: float, want_seeds: bool = False
     lb : float, a lower bound of the true one-sided Hausdorff distance.
     seeds : (k, 3) centroids of the regions still above ``target`` (empty unless asked).
     """
+    ub, lb, seeds = certify_faces(V, F, np.arange(len(F), dtype=np.int64), C, R, target, min_size, want_seeds, bvh)
+    return float(ub.max()), float(lb.max()), seeds
+
+
+def certify_faces(V, F, faces, C, R, target: float, min_size: float, want_seeds: bool = False, bvh: BVH | None = None):
+    """``certify`` on the triangles ``faces`` only, per triangle.
+
+    Adding spheres only shrinks gaps, so a triangle certified below ``target`` stays so: the
+    builder re-certifies only the triangles still open at the previous lattice level.
+
+    Returns
+    -------
+    ub, lb : (len(faces),) per-triangle bound and lower bound.
+    seeds : (k, 3) centroids of the sub-triangles still above ``target`` (empty unless asked).
+    """
     if len(R) == 0:
         raise ValueError("no spheres to certify")
     if bvh is None:
         bvh = BVH.of_spheres(C, R)
-    ub, lb, nbad = _certify_all(V, F, C, R, *bvh.arrays, float(target), float(min_size))
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size))
     seeds = np.empty((0, 3))
     if want_seeds and nbad.sum() > 0:
-        faces = np.flatnonzero(nbad)
-        offsets = np.concatenate([[0], np.cumsum(nbad[faces])]).astype(np.int64)
+        bad = np.flatnonzero(nbad)
+        offsets = np.concatenate([[0], np.cumsum(nbad[bad])]).astype(np.int64)
         seeds = np.empty((offsets[-1], 3))
-        _emit_bad(V, F, faces.astype(np.int64), offsets, C, R, *bvh.arrays, float(target), float(min_size), seeds)
-    return float(ub.max()), float(lb.max()), seeds
+        _emit_bad(V, F, faces[bad], offsets, C, R, *bvh.arrays, float(target), float(min_size), seeds)
+    return ub, lb, seeds
 
 
 def tight_bound(V, F, C, R, rel_tol: float = 0.05, bvh: BVH | None = None, known: float = np.inf):

@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from .bound import certify, surface_gaps, tight_bound
+from .bound import certify_faces, surface_gaps, tight_bound
 from .bvh import BVH
 from .hierarchy import build_hierarchy
 from .mesh import load_mesh
@@ -156,6 +156,8 @@ def build(
     gaps = P[f >= 0.25 * h0] if fill else np.empty((0, 3))
     levels = 0
     certified = np.inf  # best bound so far (stays valid as spheres are added)
+    face_ub = np.full(len(m.faces), np.inf)  # per-triangle certificates, also valid from then on
+    open_faces = np.arange(len(m.faces), dtype=np.int64)  # triangles not yet below the target
     for level in range(1, MAX_LEVELS + 1):
         if len(R) >= max_leaves:
             break
@@ -163,7 +165,10 @@ def build(
         tc = time.perf_counter()
         sph_bvh = BVH.of_spheres(C, R) if len(R) else None
         if len(R):
-            ub, _, seeds = certify(m.vertices, m.faces, C, R, target, h, want_seeds=True, bvh=sph_bvh)
+            ub_f, _, seeds = certify_faces(m.vertices, m.faces, open_faces, C, R, target, h, want_seeds=True, bvh=sph_bvh)
+            face_ub[open_faces] = ub_f
+            open_faces = open_faces[ub_f > target]
+            ub = float(face_ub.max())
         else:
             ub, seeds = np.inf, m.vertices[m.faces].mean(axis=1)
         t_cert += time.perf_counter() - tc

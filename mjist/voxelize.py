@@ -42,17 +42,49 @@ def _seed_keys(seeds, origin, h, dims):
 
 
 @njit(cache=True)
-def _dilate_axis(keys, axis, w, dims):
-    """Every key shifted by -w..w along one axis (clipped to the lattice), not deduplicated."""
+def _dilate_sorted(keys, axis, w, dims):
+    """Every key shifted by -w..w along one axis (clipped to the lattice), sorted and unique.
+
+    ``keys`` must be sorted and unique. Shifting every key by the same offset along one axis keeps it sorted (the keys that would
+    leave the lattice are skipped), so the dilation is the merge of 2w+1 sorted streams, with
+    duplicates dropped on the way: linear time, where sorting the (2w+1)x larger band with
+    ``np.unique`` took 40 % of the voxelization.
+    """
     shift = (2 - axis) * KEY_BITS
-    out = np.empty(keys.shape[0] * (2 * w + 1), np.int64)
+    step = np.int64(1) << shift
+    n = keys.shape[0]
+    k = 2 * w + 1
+    head = np.zeros(k, np.int64)
+    val = np.empty(k, np.int64)
+    top = dims[axis]
+    out = np.empty(n * k, np.int64)
     m = 0
-    for i in range(keys.shape[0]):
-        c = (keys[i] >> shift) & KEY_MASK
-        base = keys[i] & ~(KEY_MASK << shift)
-        for o in range(max(0, c - w), min(dims[axis], c + w + 1)):
-            out[m] = base | (o << shift)
+    for j in range(k):  # each stream's first key that stays on the lattice
+        o = j - w
+        i = 0
+        while i < n and not 0 <= ((keys[i] >> shift) & KEY_MASK) + o < top:
+            i += 1
+        head[j] = i
+        val[j] = keys[i] + o * step if i < n else -1
+    while True:
+        best = -1
+        bj = -1
+        for j in range(k):
+            if head[j] < n and (bj < 0 or val[j] < best):
+                best = val[j]
+                bj = j
+        if bj < 0:
+            break
+        if m == 0 or out[m - 1] != best:
+            out[m] = best
             m += 1
+        o = bj - w
+        i = head[bj] + 1
+        while i < n and not 0 <= ((keys[i] >> shift) & KEY_MASK) + o < top:
+            i += 1
+        head[bj] = i
+        if i < n:
+            val[bj] = keys[i] + o * step
     return out[:m]
 
 
@@ -123,7 +155,7 @@ class Voxelizer:
         dims = self.dims(level)
         w = int(np.ceil(half_width / h))
         keys = np.unique(_seed_keys(np.ascontiguousarray(seeds, dtype=np.float64), self.origin, h, dims))
-        # separable cube dilation, deduplicated after each axis: memory ~ (2w+1) x the band
+        # separable cube dilation, kept sorted and unique after each axis: memory ~ (2w+1) x the band
         for axis in range(3):
-            keys = np.unique(_dilate_axis(keys, axis, w, dims))
+            keys = _dilate_sorted(keys, axis, w, dims)
         return decode(keys, self.origin, h)

@@ -250,3 +250,21 @@ def test_real_maxilla_three_shells():
     assert m.shells == 3
     tree = mjist.build(m, max_error=1e-3)
     assert tree.error_bound <= 1e-3
+
+
+def test_band_dilation_matches_sort_unique():
+    """The merge-based lattice dilation equals the obvious shift + sort + unique, at the lattice's edges too."""
+    from mjist.voxelize import KEY_BITS, _dilate_sorted
+
+    rng = np.random.default_rng(5)
+    dims = np.array([40, 30, 20])
+    ijk = np.stack([rng.integers(0, d, 3000) for d in dims], 1)
+    ijk[:4] = [[0, 0, 0], [39, 29, 19], [1, 0, 18], [38, 1, 0]]
+    keys = np.unique((ijk[:, 0] << 2 * KEY_BITS) | (ijk[:, 1] << KEY_BITS) | ijk[:, 2])
+    for axis in range(3):
+        shift = (2 - axis) * KEY_BITS
+        c = (keys >> shift) & ((1 << KEY_BITS) - 1)
+        for w in (1, 2, 3):
+            ref = np.unique(np.concatenate([keys[(c + o >= 0) & (c + o < dims[axis])] + o * (1 << shift)
+                                            for o in range(-w, w + 1)]))
+            assert np.array_equal(_dilate_sorted(keys, axis, w, dims), ref)
