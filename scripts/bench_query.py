@@ -95,27 +95,30 @@ def stats(ts):
 DISTMAX = 0.05  # m: MuJoCo's distance queries look this far (the motion opens the jaw ~10 mm)
 
 
-def _mujoco_pair(parts_a, parts_b):
-    """A model with the maxilla's convex pieces fixed and the mandible's on a mocap body."""
+def _mujoco_pair(parts_a, parts_b, gtype=mujoco.mjtGeom.mjGEOM_MESH):
+    """A model with the maxilla's pieces fixed and the mandible's on a mocap body (mesh geoms:
+    MuJoCo collides their convex hulls; sdf geoms: MuJoCo's mesh SDF)."""
     spec = mujoco.MjSpec()
+    spec.option.sdf_initpoints = 50  # as bench_mujoco's native-sdf mode
     mocap = spec.worldbody.add_body(name="mandible", mocap=True)
     ids = ([], [])
     for k, (parts, body) in enumerate(((parts_a, spec.worldbody), (parts_b, mocap))):
         for i, (V, F) in enumerate(parts):
             name = f"{'ab'[k]}{i}"
             spec.add_mesh(name=name, uservert=np.asarray(V, float).ravel().tolist(), userface=np.asarray(F, int).ravel().tolist())
-            body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, contype=0, conaffinity=0)
+            body.add_geom(name=name, type=gtype, meshname=name, contype=0, conaffinity=0)
     m = spec.compile()
     for g in range(m.ngeom):
         ids[0 if m.geom_bodyid[g] == 0 else 1].append(g)
     return m, mujoco.MjData(m), np.array(ids[0]), np.array(ids[1])
 
 
-def mujoco_reference(name, parts_a, parts_b, poses):
+def mujoco_reference(name, parts_a, parts_b, poses, gtype=mujoco.mjtGeom.mjGEOM_MESH):
     """MuJoCo's own distance on the same frames: ``mj_geomDistance`` between convex pieces
     (one piece = the convex hull, as MuJoCo collides meshes; several = a CoACD decomposition,
-    pairs pruned by their bounding spheres as a broad phase would). Times exclude kinematics."""
-    m, d, ga, gb = _mujoco_pair(parts_a, parts_b)
+    pairs pruned by their bounding spheres as a broad phase would) or between mesh SDFs (which
+    report only contacts: ``DISTMAX`` when apart). Times exclude kinematics."""
+    m, d, ga, gb = _mujoco_pair(parts_a, parts_b, gtype)
     t = np.empty(len(poses))
     dist = np.empty(len(poses))
     for k, P in enumerate(poses):
@@ -140,7 +143,9 @@ def mujoco_reference(name, parts_a, parts_b, poses):
 def references(mx, md, poses, truth, coacd_cache):
     """Convex hull (MuJoCo's mesh collision) and, with ``coacd`` installed, CoACD pieces."""
     hull = [(mx.trimesh().convex_hull.vertices, mx.trimesh().convex_hull.faces)], [(md.trimesh().convex_hull.vertices, md.trimesh().convex_hull.faces)]
-    out = {"mujoco hull": mujoco_reference("mujoco hull", *hull, poses)}
+    out = {"mujoco hull": mujoco_reference("mujoco hull", *hull, poses),
+           "mujoco mesh-sdf": mujoco_reference("mujoco mesh-sdf", [(mx.vertices, mx.faces)], [(md.vertices, md.faces)],
+                                               poses, mujoco.mjtGeom.mjGEOM_SDF)}
     try:
         import coacd  # noqa: F401
     except ImportError:
@@ -154,12 +159,13 @@ def references(mx, md, poses, truth, coacd_cache):
         out["mujoco coacd"]["decompose_s"] = sa + sb
     for name, r in out.items():
         dm = np.array(r["distance"])
-        valid = truth < DISTMAX  # MuJoCo reports at most DISTMAX
+        valid = (truth < DISTMAX) & (dm < DISTMAX)  # frames where MuJoCo gave a value
         err = np.abs(np.maximum(dm, 0.0) - truth)[valid]
-        r.update(err_max=float(err.max()), err_median=float(np.median(err)),
+        r.update(err_max=float(err.max()) if err.size else float("nan"), err_median=float(np.median(err)) if err.size else float("nan"),
+                 answered=int(valid.sum()),
                  false_contacts=int(np.sum((dm <= 0) & (truth > 0))), missed_contacts=int(np.sum((dm > 0) & (truth <= 0))))
-        print(f"  {name:14s} median {r['median_us']:8.1f} µs  max |err| {r['err_max'] * 1e3:.3f} mm  "
-              f"false contacts {r['false_contacts']} / {len(truth)}", flush=True)
+        print(f"  {name:16s} median {r['median_us']:8.1f} µs  max |err| {r['err_max'] * 1e3:.3f} mm on {r['answered']} frames  "
+              f"false contacts {r['false_contacts']}, missed {r['missed_contacts']} / {len(truth)}", flush=True)
     return out
 
 
@@ -328,7 +334,8 @@ def markdown(results, meta):
         lines.append(f"| {label} | exact | | | coal distance | {r['coal']['median_us']:.0f} | {r['coal']['p99_us']:.0f} | | 1 | 0 | |")
         for name, x in r.get("references", {}).items():
             lines.append(f"| {label} | (none) | {x['pieces'][0]} / {x['pieces'][1]} pieces | | {name} | {x['median_us']:.1f} | {x['p99_us']:.1f} | "
-                         f"| {r['coal']['median_us'] / x['median_us']:.0f} | {x['err_max'] * 1e3:.3f} | {x['false_contacts']} false contacts |")
+                         f"| {r['coal']['median_us'] / x['median_us']:.0f} | {x['err_max'] * 1e3:.3f} "
+                         f"| {x['false_contacts']} false / {x['missed_contacts']} missed contacts, distance on {x['answered']} frames |")
     return "\n".join(lines) + "\n"
 
 
