@@ -119,6 +119,7 @@ def pareto(out: Path) -> str | None:
                 ax[1].annotate(f"{mode} ({pair})", (r["step_us_median"], abs(r["final_hinge_deg"])), fontsize=7)
         ax[1].set_xscale("log")
         ax[1].set_yscale("symlog", linthresh=0.1)
+        ax[1].set_ylim(bottom=0)
         ax[1].set_xlabel("median mj_step time (µs)")
         ax[1].set_ylabel("|final hinge − ground truth| (°)")
         ax[1].set_title("jaw closure in MuJoCo: cost against occlusion error")
