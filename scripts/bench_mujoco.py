@@ -48,13 +48,18 @@ def _spec_model(scene: Path, gtype: str, octree: int | None):
     return m, time.perf_counter() - t
 
 
-def coacd_pieces(V, F, threshold: float, cache: Path):
-    """CoACD convex pieces of a mesh (cached by content + threshold): list of (V, F), seconds."""
+def coacd_cache_path(V, F, threshold: float, cache: Path) -> Path:
+    """Where ``coacd_pieces`` keeps the decomposition of this mesh (content + threshold)."""
     import hashlib
 
     key = hashlib.sha256(np.ascontiguousarray(V, np.float64).tobytes() + np.ascontiguousarray(F, np.int64).tobytes()
                          + repr((threshold, "off")).encode()).hexdigest()[:20]
-    path = cache / f"{key}.npz"
+    return cache / f"{key}.npz"
+
+
+def coacd_pieces(V, F, threshold: float, cache: Path):
+    """CoACD convex pieces of a mesh (cached by content + threshold): list of (V, F), seconds."""
+    path = coacd_cache_path(V, F, threshold, cache)
     if path.exists():
         z = np.load(path)
         n = int(z["n"])
@@ -76,17 +81,29 @@ def coacd_pieces(V, F, threshold: float, cache: Path):
     return [(np.asarray(pv), np.asarray(pf)) for pv, pf in parts], sec
 
 
-def _coacd_model(scene: Path, threshold: float):
-    """The scene with each jaw's collision geom replaced by its CoACD pieces (visual mesh kept)."""
+def _jaw_meshes(spec, scene: Path):
+    """(geom, vertices, faces) of the scene's two jaw geoms, as the mesh files hold them (scaled)."""
     import trimesh
 
-    spec = mujoco.MjSpec.from_file(str(scene))
     folder = Path(scene).parent / (spec.meshdir or "")
-    seconds, pieces = 0.0, 0
     for g in [g for g in spec.geoms if g.name in ("maxilla", "mandible")]:
         mesh = next(m for m in spec.meshes if m.name == g.meshname)
         src = trimesh.load(folder / mesh.file, force="mesh", process=False)
-        parts, sec = coacd_pieces(src.vertices * np.asarray(mesh.scale), src.faces, threshold, ROOT / "out" / "coacd")
+        yield g, src.vertices * np.asarray(mesh.scale), src.faces
+
+
+def coacd_cached(scene: Path, threshold: float) -> bool:
+    """Are both jaws' CoACD decompositions already in ``out/coacd``?"""
+    spec = mujoco.MjSpec.from_file(str(scene))
+    return all(coacd_cache_path(V, F, threshold, ROOT / "out" / "coacd").exists() for _, V, F in _jaw_meshes(spec, scene))
+
+
+def _coacd_model(scene: Path, threshold: float):
+    """The scene with each jaw's collision geom replaced by its CoACD pieces (visual mesh kept)."""
+    spec = mujoco.MjSpec.from_file(str(scene))
+    seconds, pieces = 0.0, 0
+    for g, V, F in list(_jaw_meshes(spec, scene)):
+        parts, sec = coacd_pieces(V, F, threshold, ROOT / "out" / "coacd")
         seconds += sec
         body = g.parent
         for i, (pv, pf) in enumerate(parts):
@@ -182,7 +199,7 @@ def main():
     ap.add_argument("--modes", default="ist-mesh,ist-sdf,native-hull,native-sdf,native-coacd")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--every", type=int, default=10)
-    ap.add_argument("--quick", action="store_true", help="200 steps, no native mesh-SDF")
+    ap.add_argument("--quick", action="store_true", help="200 steps, no native mesh-SDF, CoACD only if already decomposed")
     ap.add_argument("--coacd-threshold", type=float, default=0.05, help="CoACD concavity threshold (its default 0.05)")
     ap.add_argument("--out", default=str(ROOT / "out" / "bench_mujoco"))
     a = ap.parse_args()
@@ -210,6 +227,9 @@ def main():
         coal_pair = tuple(jawmod.coal_bvh(*A.mesh_of(m0, mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_GEOM, g))) for g in ("maxilla", "mandible"))
         results["cases"][name] = {}
         for mode in a.modes.split(","):
+            if mode == "native-coacd" and a.quick and not coacd_cached(scene, a.coacd_threshold):
+                print(f"{name:8s} native-coacd skipped in --quick: no cached decomposition (the full run makes one, 1-2 min)")
+                continue
             r = run_mode(scene, mode, a.steps, a.every, coal_pair, a.coacd_threshold)
             results["cases"][name][mode] = r
             extra = f"  ({r['pieces']} CoACD pieces, {r['decompose_s']:.0f} s to decompose)" if "pieces" in r else ""
