@@ -155,6 +155,7 @@ def build(
     filled = 4.0 / 3.0 * np.pi * float(np.sum(R**3))
     gaps = P[f >= 0.25 * h0] if fill else np.empty((0, 3))
     levels = 0
+    level_log = [{"level": 0, "spacing": h0, "band_points": int(len(P)), "spheres": int(len(R)), "seconds": time.perf_counter() - tv}]
     certified = np.inf  # best bound so far (stays valid as spheres are added)
     face_ub = np.full(len(m.faces), np.inf)  # per-triangle certificates, also valid from then on
     open_faces = np.arange(len(m.faces), dtype=np.int64)  # triangles not yet below the target
@@ -162,6 +163,7 @@ def build(
         if len(R) >= max_leaves:
             break
         h = vox.spacing(level)
+        t_level = time.perf_counter()
         tc = time.perf_counter()
         sph_bvh = BVH.of_spheres(C, R) if len(R) else None
         if len(R):
@@ -185,6 +187,7 @@ def build(
         tv = time.perf_counter()
         r_min = 0.5 * h
         P = vox.band(level, np.concatenate([seeds, gaps]) if len(gaps) else seeds, BAND_WIDTH * h)
+        n_band = len(P)
         if len(P) > MAX_BAND_POINTS:
             warnings.warn(
                 f"lattice level {level} would need {len(P)} band points (limit {MAX_BAND_POINTS}); "
@@ -209,6 +212,9 @@ def build(
         R = np.concatenate([R, Rn])
         t_pack += time.perf_counter() - tp
         levels = level
+        level_log.append({"level": level, "spacing": h, "open_faces": int(len(open_faces)), "seeds": int(len(seeds)),
+                          "band_points": int(n_band), "candidates": int(len(P)), "spheres": int(len(Rn)), "certify_bound": float(ub) if np.isfinite(ub) else None,
+                          "seconds": time.perf_counter() - t_level})
     timings["voxelize"] = t_vox
     timings["pack"] = t_pack
     if len(R) == 0:
@@ -268,6 +274,7 @@ def build(
             "points_evaluated": int(vox.points_evaluated),
             "repairs": list(m.repairs),
             "mean_gap": mean_gap,
+            "levels": level_log,
         },
     )
 

@@ -70,7 +70,6 @@ def _bng(X, w, k, max_iter, tol, key):
     lam0 = k / 2.0
     lamf = 0.01
     dist = np.empty(k)
-    rank = np.empty(k, np.int64)
     num = np.empty((k, 3))
     den = np.empty(k)
     hk = np.empty(k)
@@ -80,26 +79,29 @@ def _bng(X, w, k, max_iter, tol, key):
             hk[j] = np.exp(-j / lam)
         num[:] = 0.0
         den[:] = 0.0
+        # scalar arithmetic throughout: array expressions here would allocate per point
         for i in range(n):
+            x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
             for j in range(k):
-                dist[j] = ((X[i] - W[j]) ** 2).sum()
-            # ranks by insertion (k is small)
+                dist[j] = (x0 - W[j, 0]) ** 2 + (x1 - W[j, 1]) ** 2 + (x2 - W[j, 2]) ** 2
+            # ranks by counting (k is small)
             for j in range(k):
                 r = 0
+                dj = dist[j]
                 for q in range(k):
-                    if dist[q] < dist[j] or (dist[q] == dist[j] and q < j):
+                    if dist[q] < dj or (dist[q] == dj and q < j):
                         r += 1
-                rank[j] = r
-            for j in range(k):
-                hw = hk[rank[j]] * w[i]
+                hw = hk[r] * w[i]
                 den[j] += hw
-                num[j] += hw * X[i]
+                num[j, 0] += hw * x0
+                num[j, 1] += hw * x1
+                num[j, 2] += hw * x2
         move = 0.0
         for j in range(k):
             if den[j] > 0:
-                nw = num[j] / den[j]
-                move = max(move, np.sqrt(((nw - W[j]) ** 2).sum()))
-                W[j] = nw
+                n0, n1, n2 = num[j, 0] / den[j], num[j, 1] / den[j], num[j, 2] / den[j]
+                move = max(move, np.sqrt((n0 - W[j, 0]) ** 2 + (n1 - W[j, 1]) ** 2 + (n2 - W[j, 2]) ** 2))
+                W[j, 0], W[j, 1], W[j, 2] = n0, n1, n2
         if move <= tol * size:
             break
     return W
@@ -120,34 +122,39 @@ def _assign(X, W, labels):
 def _enclosing(C, R, idx, c0):
     """Ball enclosing the balls ``C[idx], R[idx]`` (Bădoiu–Clarkson from ``c0``, exact final radius)."""
     m = idx.shape[0]
-    c = c0.copy()
-    best_c = c.copy()
+    c0_, c1_, c2_ = c0[0], c0[1], c0[2]
+    b0, b1, b2 = c0_, c1_, c2_
     best_r = np.inf
     for t in range(MEB_ITER):
         far = -1.0
         fi = 0
-        for q in range(m):
+        for q in range(m):  # scalar form: this loop runs MEB_ITER times over every leaf per level
             i = idx[q]
-            dd = np.sqrt(((C[i] - c) ** 2).sum()) + R[i]
+            dd = np.sqrt((C[i, 0] - c0_) ** 2 + (C[i, 1] - c1_) ** 2 + (C[i, 2] - c2_) ** 2) + R[i]
             if dd > far:
                 far = dd
                 fi = i
         if far < best_r:
             best_r = far
-            best_c[:] = c
-        v = C[fi] - c
-        nv = np.sqrt((v ** 2).sum())
+            b0, b1, b2 = c0_, c1_, c2_
+        v0, v1, v2 = C[fi, 0] - c0_, C[fi, 1] - c1_, C[fi, 2] - c2_
+        nv = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
         if nv > 0:
-            q_far = C[fi] + R[fi] * v / nv
+            s = R[fi] / nv
+            q0, q1, q2 = C[fi, 0] + s * v0, C[fi, 1] + s * v1, C[fi, 2] + s * v2
         else:
-            q_far = C[fi].copy()
-            q_far[0] += R[fi]
-        c = c + (q_far - c) / (t + 2.0)
+            q0, q1, q2 = C[fi, 0] + R[fi], C[fi, 1], C[fi, 2]
+        step = 1.0 / (t + 2.0)
+        c0_ += (q0 - c0_) * step
+        c1_ += (q1 - c1_) * step
+        c2_ += (q2 - c2_) * step
     # exact radius for the best centre seen (enclosure holds by construction)
     r = 0.0
     for q in range(m):
         i = idx[q]
-        r = max(r, np.sqrt(((C[i] - best_c) ** 2).sum()) + R[i])
+        r = max(r, np.sqrt((C[i, 0] - b0) ** 2 + (C[i, 1] - b1) ** 2 + (C[i, 2] - b2) ** 2) + R[i])
+    best_c = np.empty(3)
+    best_c[0], best_c[1], best_c[2] = b0, b1, b2
     return best_c, r * (1.0 + 1e-12)
 
 
