@@ -25,114 +25,142 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import BVH, STACK, sphere_gap
+from .bvh import BVH, STACK, sphere_gap, sphere_gap_xyz
 
 SUB_STACK = 256
 
 
 @njit(cache=True, inline="always")
-def _cov(a, b, c):
-    ab = b - a
-    ac = c - a
-    bc = c - b
-    la = bc @ bc
-    lb = ac @ ac
-    lc = ab @ ab
+def _cov(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Covering radius of a triangle by its vertices (scalar form: no temporaries)."""
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    la = (cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2
+    lb = acx * acx + acy * acy + acz * acz
+    lc = abx * abx + aby * aby + abz * abz
     longest = max(la, lb, lc)
     if 2.0 * longest >= la + lb + lc:  # right or obtuse: farthest point is the long edge's midpoint
         return 0.5 * np.sqrt(longest)
-    cr = np.cross(ab, ac)
-    area2 = cr @ cr
+    nx = aby * acz - abz * acy
+    ny = abz * acx - abx * acz
+    nz = abx * acy - aby * acx
+    area2 = nx * nx + ny * ny + nz * nz
     return np.sqrt(la * lb * lc / (4.0 * area2))
 
 
 @njit(cache=True, inline="always")
-def _gap_at(p, C, R, lo, hi, left, right, start, count, order, stack):
-    return sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, np.inf)
+def _gap_at(x, y, z, C, R, lo, hi, left, right, start, count, order, stack):
+    return sphere_gap_xyz(x, y, z, C, R, lo, hi, left, right, start, count, order, stack, np.inf)
+
+
+@njit(cache=True, inline="always")
+def _gap_near(x, y, z, ja, jb, C, R, lo, hi, left, right, start, count, order, stack):
+    """``_gap_at`` warm-started by the nearest spheres of the edge's two ends (prunes the search)."""
+    bound = np.inf
+    jc = -1
+    for j in (ja, jb):
+        if j >= 0:
+            g = np.sqrt((x - C[j, 0]) ** 2 + (y - C[j, 1]) ** 2 + (z - C[j, 2]) ** 2) - R[j]
+            if g < bound:
+                bound = g
+                jc = j
+    if bound <= 0.0:
+        return 0.0, jc
+    g, j = sphere_gap_xyz(x, y, z, C, R, lo, hi, left, right, start, count, order, stack, bound)
+    if j < 0:  # nothing closer than the warm start
+        return bound, jc
+    return g, j
+
+
+@njit(cache=True, inline="always")
+def _sphere_ub(P, sp, C, R, j):
+    """max over the triangle's vertices of the gap to sphere j (convex: its max over T)."""
+    m = 0.0
+    for w in range(3):
+        d = np.sqrt((P[sp, w, 0] - C[j, 0]) ** 2 + (P[sp, w, 1] - C[j, 1]) ** 2 + (P[sp, w, 2] - C[j, 2]) ** 2) - R[j]
+        m = max(m, d)
+    return m
 
 
 @njit(cache=True)
-def _certify_triangle(a0, b0, c0, C, R, lo, hi, left, right, start, count, order, target, min_size, stack, seeds, emit):
-    """Bound for one triangle. Returns (ub, lb, n_bad); writes bad centroids to seeds if emit.
+def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, target, min_size, stack, seeds, emit, inset):
+    """Bound for triangle ``F[f]``. Returns (ub, lb, n_bad); writes bad centroids to seeds if emit,
+    moved ``inset`` into the solid along the face normal.
 
     Stack entries carry their vertices, the gaps and nearest spheres there, and the parent's
-    bound (a sub-triangle's bound never exceeds its parent's: it lies inside it).
+    bound (a sub-triangle's bound never exceeds its parent's: it lies inside it). Everything
+    is scalar or in the preallocated stack: this runs on millions of sub-triangles.
     """
     P = np.empty((SUB_STACK, 3, 3))
     G = np.empty((SUB_STACK, 3))
     J = np.empty((SUB_STACK, 3), np.int64)
     UBP = np.empty(SUB_STACK)
-    P[0, 0] = a0
-    P[0, 1] = b0
-    P[0, 2] = c0
     for v in range(3):
-        G[0, v], J[0, v] = _gap_at(P[0, v], C, R, lo, hi, left, right, start, count, order, stack)
+        for d in range(3):
+            P[0, v, d] = V[F[f, v], d]
+        G[0, v], J[0, v] = _gap_at(P[0, v, 0], P[0, v, 1], P[0, v, 2], C, R, lo, hi, left, right, start, count, order, stack)
     UBP[0] = np.inf
     sp = 1
+    # inward unit normal times inset (outward winding: the normal is (b-a)x(c-a))
+    e1x, e1y, e1z = P[0, 1, 0] - P[0, 0, 0], P[0, 1, 1] - P[0, 0, 1], P[0, 1, 2] - P[0, 0, 2]
+    e2x, e2y, e2z = P[0, 2, 0] - P[0, 0, 0], P[0, 2, 1] - P[0, 0, 1], P[0, 2, 2] - P[0, 0, 2]
+    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    s_in = -inset / nn if nn > 0 else 0.0
+    nx, ny, nz = nx * s_in, ny * s_in, nz * s_in
     ub_max = 0.0
     lb_max = 0.0
     nbad = 0
-    mid = np.empty((3, 3))
-    gm = np.empty(3)
-    jm = np.empty(3, np.int64)
     while sp > 0:
         sp -= 1
-        a = P[sp, 0].copy()
-        b = P[sp, 1].copy()
-        c = P[sp, 2].copy()
+        ax, ay, az = P[sp, 0, 0], P[sp, 0, 1], P[sp, 0, 2]
+        bx, by, bz = P[sp, 1, 0], P[sp, 1, 1], P[sp, 1, 2]
+        cx, cy, cz = P[sp, 2, 0], P[sp, 2, 1], P[sp, 2, 2]
         g0, g1, g2 = G[sp, 0], G[sp, 1], G[sp, 2]
         j0, j1, j2 = J[sp, 0], J[sp, 1], J[sp, 2]
-        cov = _cov(a, b, c)
+        cov = _cov(ax, ay, az, bx, by, bz, cx, cy, cz)
         gmax = max(g0, g1, g2)
         lb_max = max(lb_max, gmax)
         ub = min(gmax + cov, UBP[sp])
-        for v in range(3):
-            j = j0 if v == 0 else (j1 if v == 1 else j2)
-            if j < 0:
-                continue
-            m = 0.0
-            for w in range(3):
-                p = a if w == 0 else (b if w == 1 else c)
-                d = np.sqrt((p[0] - C[j, 0]) ** 2 + (p[1] - C[j, 1]) ** 2 + (p[2] - C[j, 2]) ** 2) - R[j]
-                m = max(m, d)
-            ub = min(ub, m)
+        if j0 >= 0:
+            ub = min(ub, _sphere_ub(P, sp, C, R, j0))
+        if j1 >= 0 and j1 != j0:
+            ub = min(ub, _sphere_ub(P, sp, C, R, j1))
+        if j2 >= 0 and j2 != j0 and j2 != j1:
+            ub = min(ub, _sphere_ub(P, sp, C, R, j2))
         if ub <= target or cov <= min_size or sp + 4 > SUB_STACK:
             ub_max = max(ub_max, ub)
             if ub > target:
                 if emit:
-                    seeds[nbad] = (a + b + c) / 3.0
+                    seeds[nbad, 0] = (ax + bx + cx) / 3.0 + nx
+                    seeds[nbad, 1] = (ay + by + cy) / 3.0 + ny
+                    seeds[nbad, 2] = (az + bz + cz) / 3.0 + nz
                 nbad += 1
             continue
-        mid[0] = 0.5 * (a + b)
-        mid[1] = 0.5 * (b + c)
-        mid[2] = 0.5 * (c + a)
-        for v in range(3):
-            gm[v], jm[v] = _gap_at(mid[v], C, R, lo, hi, left, right, start, count, order, stack)
-        # children: (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)
-        P[sp, 0] = a
-        P[sp, 1] = mid[0]
-        P[sp, 2] = mid[2]
-        G[sp, 0], G[sp, 1], G[sp, 2] = g0, gm[0], gm[2]
-        J[sp, 0], J[sp, 1], J[sp, 2] = j0, jm[0], jm[2]
-        P[sp + 1, 0] = mid[0]
-        P[sp + 1, 1] = b
-        P[sp + 1, 2] = mid[1]
-        G[sp + 1, 0], G[sp + 1, 1], G[sp + 1, 2] = gm[0], g1, gm[1]
-        J[sp + 1, 0], J[sp + 1, 1], J[sp + 1, 2] = jm[0], j1, jm[1]
-        P[sp + 2, 0] = mid[2]
-        P[sp + 2, 1] = mid[1]
-        P[sp + 2, 2] = c
-        G[sp + 2, 0], G[sp + 2, 1], G[sp + 2, 2] = gm[2], gm[1], g2
-        J[sp + 2, 0], J[sp + 2, 1], J[sp + 2, 2] = jm[2], jm[1], j2
-        P[sp + 3, 0] = mid[0]
-        P[sp + 3, 1] = mid[1]
-        P[sp + 3, 2] = mid[2]
-        G[sp + 3, 0], G[sp + 3, 1], G[sp + 3, 2] = gm[0], gm[1], gm[2]
-        J[sp + 3, 0], J[sp + 3, 1], J[sp + 3, 2] = jm[0], jm[1], jm[2]
+        abx, aby, abz = 0.5 * (ax + bx), 0.5 * (ay + by), 0.5 * (az + bz)
+        bcx, bcy, bcz = 0.5 * (bx + cx), 0.5 * (by + cy), 0.5 * (bz + cz)
+        cax, cay, caz = 0.5 * (cx + ax), 0.5 * (cy + ay), 0.5 * (cz + az)
+        gab, jab = _gap_near(abx, aby, abz, j0, j1, C, R, lo, hi, left, right, start, count, order, stack)
+        gbc, jbc = _gap_near(bcx, bcy, bcz, j1, j2, C, R, lo, hi, left, right, start, count, order, stack)
+        gca, jca = _gap_near(cax, cay, caz, j2, j0, C, R, lo, hi, left, right, start, count, order, stack)
+        # children: (a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca); entry sp still holds a, b, c
+        _put(P, G, J, sp + 3, abx, aby, abz, gab, jab, bcx, bcy, bcz, gbc, jbc, cax, cay, caz, gca, jca)
+        _put(P, G, J, sp + 2, cax, cay, caz, gca, jca, bcx, bcy, bcz, gbc, jbc, cx, cy, cz, g2, j2)
+        _put(P, G, J, sp + 1, abx, aby, abz, gab, jab, bx, by, bz, g1, j1, bcx, bcy, bcz, gbc, jbc)
+        _put(P, G, J, sp, ax, ay, az, g0, j0, abx, aby, abz, gab, jab, cax, cay, caz, gca, jca)
         for q in range(4):
             UBP[sp + q] = ub
         sp += 4
     return ub_max, lb_max, nbad
+
+
+@njit(cache=True, inline="always")
+def _put(P, G, J, s, x0, y0, z0, g0, j0, x1, y1, z1, g1, j1, x2, y2, z2, g2, j2):
+    P[s, 0, 0], P[s, 0, 1], P[s, 0, 2] = x0, y0, z0
+    P[s, 1, 0], P[s, 1, 1], P[s, 1, 2] = x1, y1, z1
+    P[s, 2, 0], P[s, 2, 1], P[s, 2, 2] = x2, y2, z2
+    G[s, 0], G[s, 1], G[s, 2] = g0, g1, g2
+    J[s, 0], J[s, 1], J[s, 2] = j0, j1, j2
 
 
 @njit(cache=True, parallel=True)
@@ -143,23 +171,21 @@ def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, ta
     nbad = np.empty(nf, np.int64)
     dummy = np.empty((0, 3))
     for t in prange(nf):
-        f = faces[t]
         stack = np.empty(STACK, np.int64)
         ub[t], lb[t], nbad[t] = _certify_triangle(
-            V[F[f, 0]], V[F[f, 1]], V[F[f, 2]], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, stack, dummy, False,
+            V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
+            target, min_size, stack, dummy, False, 0.0,
         )
     return ub, lb, nbad
 
 
 @njit(cache=True, parallel=True)
-def _emit_bad(V, F, faces, offsets, C, R, lo, hi, left, right, start, count, order, target, min_size, seeds):
+def _emit_bad(V, F, faces, offsets, C, R, lo, hi, left, right, start, count, order, target, min_size, seeds, inset):
     for t in prange(faces.shape[0]):
-        f = faces[t]
         stack = np.empty(STACK, np.int64)
         _certify_triangle(
-            V[F[f, 0]], V[F[f, 1]], V[F[f, 2]], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, stack, seeds[offsets[t]:offsets[t + 1]], True,
+            V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
+            target, min_size, stack, seeds[offsets[t]:offsets[t + 1]], True, inset,
         )
 
 
@@ -184,7 +210,9 @@ def certify(V, F, C, R, target: float, min_size: float, want_seeds: bool = False
     return float(ub.max()), float(lb.max()), seeds
 
 
-def certify_faces(V, F, faces, C, R, target: float, min_size: float, want_seeds: bool = False, bvh: BVH | None = None):
+def certify_faces(
+    V, F, faces, C, R, target: float, min_size: float, want_seeds: bool = False, bvh: BVH | None = None, seed_inset: float = 0.0
+):
     """``certify`` on the triangles ``faces`` only, per triangle.
 
     Adding spheres only shrinks gaps, so a triangle certified below ``target`` stays so: the
@@ -193,7 +221,8 @@ def certify_faces(V, F, faces, C, R, target: float, min_size: float, want_seeds:
     Returns
     -------
     ub, lb : (len(faces),) per-triangle bound and lower bound.
-    seeds : (k, 3) centroids of the sub-triangles still above ``target`` (empty unless asked).
+    seeds : (k, 3) centroids of the sub-triangles still above ``target`` (empty unless asked),
+        moved ``seed_inset`` into the solid along their face's normal (where new spheres go).
     """
     if len(R) == 0:
         raise ValueError("no spheres to certify")
@@ -206,7 +235,7 @@ def certify_faces(V, F, faces, C, R, target: float, min_size: float, want_seeds:
         bad = np.flatnonzero(nbad)
         offsets = np.concatenate([[0], np.cumsum(nbad[bad])]).astype(np.int64)
         seeds = np.empty((offsets[-1], 3))
-        _emit_bad(V, F, faces[bad], offsets, C, R, *bvh.arrays, float(target), float(min_size), seeds)
+        _emit_bad(V, F, faces[bad], offsets, C, R, *bvh.arrays, float(target), float(min_size), seeds, float(seed_inset))
     return ub, lb, seeds
 
 

@@ -337,8 +337,8 @@ def signed_distance(P, V, F, lo, hi, left, right, start, count, order, dirs):
 
 
 @njit(cache=True)
-def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
-    """Distance from ``p`` to the union of spheres, clamped at 0, searched below ``bound``.
+def sphere_gap_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound):
+    """Distance from ``(px, py, pz)`` to the union of spheres, clamped at 0, searched below ``bound``.
 
     Returns ``(gap, index)``; ``index`` is -1 when no sphere comes closer than ``bound``.
     Node boxes enclose their spheres, so the box distance is a lower bound of the gap.
@@ -350,13 +350,13 @@ def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
     while sp > 0:
         sp -= 1
         node = stack[sp]
-        bd = box_dist2(p[0], p[1], p[2], lo, hi, node)
+        bd = box_dist2(px, py, pz, lo, hi, node)
         if bd >= best * best:
             continue
         if left[node] < 0:
             for i in range(start[node], start[node] + count[node]):
                 j = order[i]
-                g = np.sqrt((p[0] - C[j, 0]) ** 2 + (p[1] - C[j, 1]) ** 2 + (p[2] - C[j, 2]) ** 2) - R[j]
+                g = np.sqrt((px - C[j, 0]) ** 2 + (py - C[j, 1]) ** 2 + (pz - C[j, 2]) ** 2) - R[j]
                 if g < best:
                     best = g
                     bi = j
@@ -365,8 +365,8 @@ def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
             continue
         l = left[node]
         r = right[node]
-        dl = box_dist2(p[0], p[1], p[2], lo, hi, l)
-        dr = box_dist2(p[0], p[1], p[2], lo, hi, r)
+        dl = box_dist2(px, py, pz, lo, hi, l)
+        dr = box_dist2(px, py, pz, lo, hi, r)
         if dl < dr:
             stack[sp] = r
             stack[sp + 1] = l
@@ -375,6 +375,12 @@ def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
             stack[sp + 1] = r
         sp += 2
     return max(best, 0.0), bi
+
+
+@njit(cache=True, inline="always")
+def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
+    """``sphere_gap_xyz`` at the point ``p (3,)``."""
+    return sphere_gap_xyz(p[0], p[1], p[2], C, R, lo, hi, left, right, start, count, order, stack, bound)
 
 
 class BVH:
