@@ -28,6 +28,7 @@ from numba import njit, prange
 from .bvh import BVH, STACK, sphere_gap, sphere_gap_xyz
 
 SUB_STACK = 256
+SEED_BUF = 32  # bad sub-triangle centroids kept per triangle in the first pass
 
 
 @njit(cache=True, inline="always")
@@ -83,9 +84,9 @@ def _sphere_ub(P, sp, C, R, j):
 
 
 @njit(cache=True)
-def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, target, min_size, stack, seeds, emit, inset):
-    """Bound for triangle ``F[f]``. Returns (ub, lb, n_bad); writes bad centroids to seeds if emit,
-    moved ``inset`` into the solid along the face normal.
+def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, target, min_size, stack, seeds, inset):
+    """Bound for triangle ``F[f]``. Returns (ub, lb, n_bad); writes the first ``len(seeds)`` bad
+    centroids to ``seeds``, moved ``inset`` into the solid along the face normal.
 
     Stack entries carry their vertices, the gaps and nearest spheres there, and the parent's
     bound (a sub-triangle's bound never exceeds its parent's: it lies inside it). Everything
@@ -119,19 +120,12 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
         g0, g1, g2 = G[sp, 0], G[sp, 1], G[sp, 2]
         j0, j1, j2 = J[sp, 0], J[sp, 1], J[sp, 2]
         cov = _cov(ax, ay, az, bx, by, bz, cx, cy, cz)
-        gmax = max(g0, g1, g2)
-        lb_max = max(lb_max, gmax)
-        ub = min(gmax + cov, UBP[sp])
-        if j0 >= 0:
-            ub = min(ub, _sphere_ub(P, sp, C, R, j0))
-        if j1 >= 0 and j1 != j0:
-            ub = min(ub, _sphere_ub(P, sp, C, R, j1))
-        if j2 >= 0 and j2 != j0 and j2 != j1:
-            ub = min(ub, _sphere_ub(P, sp, C, R, j2))
+        lb_max = max(lb_max, g0, g1, g2)
+        ub = _sub_ub(P, G, J, sp, cov, UBP[sp], C, R)
         if ub <= target or cov <= min_size or sp + 4 > SUB_STACK:
             ub_max = max(ub_max, ub)
             if ub > target:
-                if emit:
+                if nbad < seeds.shape[0]:
                     seeds[nbad, 0] = (ax + bx + cx) / 3.0 + nx
                     seeds[nbad, 1] = (ay + by + cy) / 3.0 + ny
                     seeds[nbad, 2] = (az + bz + cz) / 3.0 + nz
@@ -163,18 +157,32 @@ def _put(P, G, J, s, x0, y0, z0, g0, j0, x1, y1, z1, g1, j1, x2, y2, z2, g2, j2)
     J[s, 0], J[s, 1], J[s, 2] = j0, j1, j2
 
 
+@njit(cache=True, inline="always")
+def _sub_ub(P, G, J, sp, cov, ub_parent, C, R):
+    """Bound of sub-triangle ``sp`` from its vertex gaps (exact or upper bounds) and nearest spheres."""
+    ub = min(max(G[sp, 0], G[sp, 1], G[sp, 2]) + cov, ub_parent)
+    j0, j1, j2 = J[sp, 0], J[sp, 1], J[sp, 2]
+    if j0 >= 0:
+        ub = min(ub, _sphere_ub(P, sp, C, R, j0))
+    if j1 >= 0 and j1 != j0:
+        ub = min(ub, _sphere_ub(P, sp, C, R, j1))
+    if j2 >= 0 and j2 != j0 and j2 != j1:
+        ub = min(ub, _sphere_ub(P, sp, C, R, j2))
+    return ub
+
+
 @njit(cache=True, parallel=True)
-def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size):
+def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size, buf, inset):
+    """Every triangle's bound; its first ``buf.shape[1]`` bad centroids go to ``buf[t]``."""
     nf = faces.shape[0]
     ub = np.empty(nf)
     lb = np.empty(nf)
     nbad = np.empty(nf, np.int64)
-    dummy = np.empty((0, 3))
     for t in prange(nf):
         stack = np.empty(STACK, np.int64)
         ub[t], lb[t], nbad[t] = _certify_triangle(
             V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, stack, dummy, False, 0.0,
+            target, min_size, stack, buf[t], inset,
         )
     return ub, lb, nbad
 
@@ -185,7 +193,7 @@ def _emit_bad(V, F, faces, offsets, C, R, lo, hi, left, right, start, count, ord
         stack = np.empty(STACK, np.int64)
         _certify_triangle(
             V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, stack, seeds[offsets[t]:offsets[t + 1]], True, inset,
+            target, min_size, stack, seeds[offsets[t]:offsets[t + 1]], inset,
         )
 
 
@@ -229,13 +237,20 @@ def certify_faces(
     if bvh is None:
         bvh = BVH.of_spheres(C, R)
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size))
+    # one pass keeps up to SEED_BUF seeds per triangle; only triangles with more are walked again
+    buf = np.empty((len(faces), SEED_BUF if want_seeds else 0, 3))
+    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size), buf, float(seed_inset))
     seeds = np.empty((0, 3))
     if want_seeds and nbad.sum() > 0:
-        bad = np.flatnonzero(nbad)
-        offsets = np.concatenate([[0], np.cumsum(nbad[bad])]).astype(np.int64)
-        seeds = np.empty((offsets[-1], 3))
-        _emit_bad(V, F, faces[bad], offsets, C, R, *bvh.arrays, float(target), float(min_size), seeds, float(seed_inset))
+        fits = (nbad > 0) & (nbad <= SEED_BUF)
+        kept = buf[fits][np.arange(SEED_BUF)[None, :] < nbad[fits][:, None]]  # (k, 3), triangle order
+        more = np.flatnonzero(nbad > SEED_BUF)
+        seeds = kept
+        if len(more):
+            offsets = np.concatenate([[0], np.cumsum(nbad[more])]).astype(np.int64)
+            rest = np.empty((offsets[-1], 3))
+            _emit_bad(V, F, faces[more], offsets, C, R, *bvh.arrays, float(target), float(min_size), rest, float(seed_inset))
+            seeds = np.concatenate([kept, rest])
     return ub, lb, seeds
 
 

@@ -149,13 +149,22 @@ class Voxelizer:
         keep = D > 0
         return P[keep], D[keep]
 
-    def band(self, level: int, seeds: np.ndarray, half_width: float):
-        """Level-``level`` lattice points within ``half_width`` (cube) of the seed points."""
+    def band(self, level: int, *groups):
+        """Level-``level`` lattice points within a cube of some seed point.
+
+        ``groups`` are ``(seeds (k, 3), half_width)`` pairs; the result is the union of the
+        groups' bands, sorted by lattice key.
+        """
         h = self.spacing(level)
         dims = self.dims(level)
-        w = int(np.ceil(half_width / h))
-        keys = np.unique(_seed_keys(np.ascontiguousarray(seeds, dtype=np.float64), self.origin, h, dims))
-        # separable cube dilation, kept sorted and unique after each axis: memory ~ (2w+1) x the band
-        for axis in range(3):
-            keys = _dilate_sorted(keys, axis, w, dims)
-        return decode(keys, self.origin, h)
+        out = np.empty(0, np.int64)
+        for seeds, half_width in groups:
+            if len(seeds) == 0:
+                continue
+            w = int(np.ceil(half_width / h - 1e-9))
+            keys = np.unique(_seed_keys(np.ascontiguousarray(seeds, dtype=np.float64), self.origin, h, dims))
+            # separable cube dilation, kept sorted and unique after each axis: memory ~ (2w+1) x the band
+            for axis in range(3):
+                keys = _dilate_sorted(keys, axis, w, dims)
+            out = keys if len(out) == 0 else np.union1d(out, keys)
+        return decode(out, self.origin, h)
