@@ -121,7 +121,11 @@ def _dot(ax, ay, az, bx, by, bz):
 
 @njit(cache=True)
 def closest_on_triangle(px, py, pz, V, i0, i1, i2):
-    """Closest point to p on triangle (V[i0], V[i1], V[i2]) (Ericson, RTCD 5.1.5), scalar form."""
+    """Closest point to p on triangle (V[i0], V[i1], V[i2]) (Ericson, RTCD 5.1.5), scalar form.
+
+    Returns ``(x, y, z, interior)``: ``interior`` is True when the point lies inside the
+    face (not on an edge or vertex), where ``p - q`` is along the face normal.
+    """
     ax, ay, az = V[i0, 0], V[i0, 1], V[i0, 2]
     bx, by, bz = V[i1, 0], V[i1, 1], V[i1, 2]
     cx, cy, cz = V[i2, 0], V[i2, 1], V[i2, 2]
@@ -131,42 +135,48 @@ def closest_on_triangle(px, py, pz, V, i0, i1, i2):
     d1 = _dot(abx, aby, abz, apx, apy, apz)
     d2 = _dot(acx, acy, acz, apx, apy, apz)
     if d1 <= 0.0 and d2 <= 0.0:
-        return ax, ay, az
+        return ax, ay, az, False
     bpx, bpy, bpz = px - bx, py - by, pz - bz
     d3 = _dot(abx, aby, abz, bpx, bpy, bpz)
     d4 = _dot(acx, acy, acz, bpx, bpy, bpz)
     if d3 >= 0.0 and d4 <= d3:
-        return bx, by, bz
+        return bx, by, bz, False
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
         v = d1 / (d1 - d3)
-        return ax + v * abx, ay + v * aby, az + v * abz
+        return ax + v * abx, ay + v * aby, az + v * abz, False
     cpx, cpy, cpz = px - cx, py - cy, pz - cz
     d5 = _dot(abx, aby, abz, cpx, cpy, cpz)
     d6 = _dot(acx, acy, acz, cpx, cpy, cpz)
     if d6 >= 0.0 and d5 <= d6:
-        return cx, cy, cz
+        return cx, cy, cz, False
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
         w = d2 / (d2 - d6)
-        return ax + w * acx, ay + w * acy, az + w * acz
+        return ax + w * acx, ay + w * acy, az + w * acz, False
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz)
+        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), False
     denom = 1.0 / (va + vb + vc)
     v = vb * denom
     w = vc * denom
-    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+    # interior with a margin: near an edge, rounding could pick the wrong feature
+    interior = v > 1e-9 and w > 1e-9 and v + w < 1.0 - 1e-9
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, interior
 
 
 @njit(cache=True)
 def tri_closest(p, V, F, lo, hi, left, right, start, count, order, stack, best=np.inf):
-    """Squared distance from ``p`` to the mesh and the closest point (x, y, z).
+    """Squared distance from ``p`` to the mesh, the closest point (x, y, z), its triangle and
+    whether it lies inside that triangle (see ``closest_on_triangle``).
 
-    ``best`` is an initial squared bound: when nothing is closer it is returned unchanged.
+    ``best`` is an initial squared bound: when nothing is closer it is returned unchanged,
+    with triangle -1.
     """
     qx = qy = qz = 0.0
+    bf = -1
+    interior = False
     px, py, pz = p[0], p[1], p[2]
     stack[0] = 0
     sp = 1
@@ -178,11 +188,13 @@ def tri_closest(p, V, F, lo, hi, left, right, start, count, order, stack, best=n
         if left[node] < 0:
             for i in range(start[node], start[node] + count[node]):
                 f = order[i]
-                x, y, z = closest_on_triangle(px, py, pz, V, F[f, 0], F[f, 1], F[f, 2])
+                x, y, z, inner = closest_on_triangle(px, py, pz, V, F[f, 0], F[f, 1], F[f, 2])
                 d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
                 if d2 < best:
                     best = d2
                     qx, qy, qz = x, y, z
+                    bf = f
+                    interior = inner
             continue
         l = left[node]
         r = right[node]
@@ -196,7 +208,7 @@ def tri_closest(p, V, F, lo, hi, left, right, start, count, order, stack, best=n
             stack[sp] = l
             stack[sp + 1] = r
         sp += 2
-    return best, qx, qy, qz
+    return best, qx, qy, qz, bf, interior
 
 
 # Ray directions for parity tests: generic (no two components equal, irrational-looking)
@@ -327,7 +339,7 @@ def signed_distance(P, V, F, lo, hi, left, right, start, count, order, dirs):
     out = np.empty(n)
     for i in prange(n):
         stack = np.empty(STACK, np.int64)
-        d2, _, _, _ = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
+        d2, _, _, _, _, _ = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
         d = np.sqrt(d2)
         if inside(P[i], V, F, lo, hi, left, right, start, count, order, stack, dirs):
             out[i] = d

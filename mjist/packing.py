@@ -143,15 +143,27 @@ def _band_free(P, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, s
             f[i] = -1.0
             continue
         # surface distance only matters below g: bounded search
-        d2, _, _, _ = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, g * g)
-        d = min(np.sqrt(d2), g)
+        d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, g * g)
+        if tf < 0:
+            # no surface within g of p, but a sphere (inside the solid) is: the segment to it
+            # crosses no surface, so p is inside and its free distance is g
+            f[i] = g
+            continue
+        d = np.sqrt(d2)
         if d < r_min:
             f[i] = -1.0
             continue
-        if not inside(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
-            f[i] = -1.0
-            continue
-        f[i] = d
+        if interior:
+            # closest point inside a face: p - q is along its normal, whose side is the answer
+            # (any exact closest point decides the side of a closed, outward-wound surface)
+            a = F[tf, 0]
+            e1x, e1y, e1z = V[F[tf, 1], 0] - V[a, 0], V[F[tf, 1], 1] - V[a, 1], V[F[tf, 1], 2] - V[a, 2]
+            e2x, e2y, e2z = V[F[tf, 2], 0] - V[a, 0], V[F[tf, 2], 1] - V[a, 1], V[F[tf, 2], 2] - V[a, 2]
+            s = (P[i, 0] - qx) * (e1y * e2z - e1z * e2y) + (P[i, 1] - qy) * (e1z * e2x - e1x * e2z) + (P[i, 2] - qz) * (e1x * e2y - e1y * e2x)
+            is_in = s < 0.0
+        else:  # closest point on an edge or vertex: parity ray casting
+            is_in = inside(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs)
+        f[i] = d if is_in else -1.0
     return f
 
 
