@@ -13,7 +13,7 @@ from .hierarchy import build_hierarchy
 from .mesh import load_mesh
 from .packing import band_free_distance, greedy_pack
 from .tree import InnerSphereTree
-from .voxelize import Voxelizer, encode
+from .voxelize import Voxelizer, decode, encode
 
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
@@ -24,7 +24,8 @@ MAX_LEVELS = 12
 BAND_WIDTH = 1.0  # in lattice spacings
 SEED_INSET = 0.5  # in lattice spacings
 FILL_BAND_WIDTH = 2.0  # around interior gap points (min_coverage): the gaps need the wider choice
-MAX_BAND_POINTS = 40_000_000  # ~1.5 GB of band state; beyond that refinement stops with a warning
+MAX_BAND_POINTS = 120_000_000  # band keys of one level (8 bytes each, ~3x that at the dilation's peak)
+BAND_CHUNK = 4_000_000  # band points decoded and evaluated at a time
 SHRINK = 1e-9  # relative radius shrink against rounding overlaps
 DEFAULT_REL_ERROR = 5e-3  # default max_error, relative to the bounding-box diagonal
 
@@ -195,24 +196,36 @@ def build(
             break
         tv = time.perf_counter()
         r_min = 0.5 * h
-        P = vox.band(level, (seeds, BAND_WIDTH * h), (gaps, FILL_BAND_WIDTH * h))
-        n_band = len(P)
-        if len(P) > MAX_BAND_POINTS:
+        band = vox.band_keys(level, (seeds, BAND_WIDTH * h), (gaps, FILL_BAND_WIDTH * h))
+        n_band = len(band)
+        if n_band > MAX_BAND_POINTS:
             warnings.warn(
-                f"lattice level {level} would need {len(P)} band points (limit {MAX_BAND_POINTS}); "
+                f"lattice level {level} would need {n_band} band points (limit {MAX_BAND_POINTS}); "
                 "stopping refinement: pass a larger max_error or a leaves= limit",
                 RuntimeWarning,
                 stacklevel=2,
             )
             break
-        f = band_free_distance(P, vox, C, R, r_min)
-        if fill:  # points too tight for this level may hold a sphere of the next one
-            gaps = P[(f >= 0.5 * r_min) & (f < r_min)]
-        keep = f >= r_min
-        P, f = P[keep], f[keep]
+        # the band in chunks (its free distances only depend on the spheres of earlier levels):
+        # memory holds the keys and the candidates, not the whole band's points
+        parts, gap_parts = [], []
+        for s in range(0, n_band, BAND_CHUNK):
+            kc = band[s:s + BAND_CHUNK]
+            Pc = decode(kc, vox.origin, h)
+            fc = band_free_distance(Pc, vox, C, R, r_min, bvh=sph_bvh)
+            if fill:  # points too tight for this level may hold a sphere of the next one
+                gap_parts.append(Pc[(fc >= 0.5 * r_min) & (fc < r_min)])
+            keep = fc >= r_min
+            parts.append((Pc[keep], fc[keep], kc[keep]))
+        del band
+        P = np.concatenate([q[0] for q in parts]) if parts else np.empty((0, 3))
+        f = np.concatenate([q[1] for q in parts]) if parts else np.empty(0)
+        keys = np.concatenate([q[2] for q in parts]) if parts else np.empty(0, np.int64)
+        del parts
+        if fill:
+            gaps = np.concatenate(gap_parts) if gap_parts else np.empty((0, 3))
         t_vox += time.perf_counter() - tv
         tp = time.perf_counter()
-        keys = encode(np.rint((P - vox.origin) / h).astype(np.int64))
         Cn, Rn = greedy_pack(P, f, keys, vox.origin, h, r_min, max_leaves - len(R), SHRINK)
         if fill:
             gaps = np.concatenate([gaps, P[f >= 0.5 * r_min]])
@@ -243,8 +256,9 @@ def build(
     # --- certified error bound --------------------------------------------------------------
     bar.stage("error bound")
     t = time.perf_counter()
-    eps, eps_lo = tight_bound(m.vertices, m.faces, arrays["leaf_centers"], arrays["leaf_radii"], known=certified)
-    mean_gap = float(surface_gaps(m.vertices, m.faces, arrays["leaf_centers"], arrays["leaf_radii"], seed=int(seed)).mean())
+    leaf_bvh = BVH.of_spheres(C, R)  # the leaves in packing order: one BVH for both passes
+    eps, eps_lo = tight_bound(m.vertices, m.faces, C, R, known=certified, bvh=leaf_bvh)
+    mean_gap = float(surface_gaps(m.vertices, m.faces, C, R, seed=int(seed), bvh=leaf_bvh).mean())
     timings["bound"] = time.perf_counter() - t + t_cert
     timings["total"] = time.perf_counter() - t0
     bar.step(f"eps {eps:.3g}")

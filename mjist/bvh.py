@@ -18,6 +18,37 @@ STACK = 128  # depth bound: median splits give depth ~log2(n/LEAF_SIZE) < 40
 
 
 @njit(cache=True)
+def _select(order, cen, axis, a, b, k):
+    """Reorder ``order[a:b]`` so that ``order[k]`` has rank ``k - a`` by ``cen[:, axis]``, the
+    smaller keys before it and the larger after (Wirth's quickselect, median-of-three pivot:
+    linear time per node where a sort is n log n, deterministic)."""
+    lo = a
+    hi = b - 1
+    while hi > lo:
+        x0 = cen[order[lo], axis]
+        x1 = cen[order[(lo + hi) >> 1], axis]
+        x2 = cen[order[hi], axis]
+        pivot = max(min(x0, x1), min(max(x0, x1), x2))
+        i = lo
+        j = hi
+        while i <= j:
+            while cen[order[i], axis] < pivot:
+                i += 1
+            while cen[order[j], axis] > pivot:
+                j -= 1
+            if i <= j:
+                order[i], order[j] = order[j], order[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+
+
+@njit(cache=True)
 def build_bvh(prim_lo, prim_hi):
     """Median-split BVH over axis-aligned boxes ``prim_lo, prim_hi (n, 3)``."""
     n = prim_lo.shape[0]
@@ -66,14 +97,8 @@ def build_bvh(prim_lo, prim_hi):
             axis = 1
         if ext[2] > ext[axis]:
             axis = 2
-        seg = order[a:b].copy()
-        keys = np.empty(b - a)
-        for i in range(b - a):
-            keys[i] = cen[seg[i], axis]
-        srt = np.argsort(keys, kind="mergesort")
-        for i in range(b - a):
-            order[a + i] = seg[srt[i]]
         mid = (a + b) // 2
+        _select(order, cen, axis, a, b, mid)
         left[node] = m
         right[node] = m + 1
         st_node[sp] = m

@@ -167,10 +167,15 @@ def _band_free(P, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, s
     return f
 
 
-def band_free_distance(P, vox, C, R, r_min):
+def band_free_distance(P, vox, C, R, r_min, bvh: BVH | None = None):
     """Free distance ``min(surface distance, gap to spheres)`` of band points, -1 where
-    the point is outside the mesh or its free distance is below ``r_min``."""
-    sb = BVH.of_spheres(C, R) if len(R) else BVH(np.zeros((1, 3)), np.zeros((1, 3)))
+    the point is outside the mesh or its free distance is below ``r_min``.
+
+    ``bvh`` is a sphere BVH of ``C, R`` to reuse (built here when not given)."""
+    if bvh is not None and len(R):
+        sb = bvh
+    else:
+        sb = BVH.of_spheres(C, R) if len(R) else BVH(np.zeros((1, 3)), np.zeros((1, 3)))
     vox.points_evaluated += len(P)
     return _band_free(
         np.ascontiguousarray(P), vox.V, vox.F, *vox.bvh.arrays, C, R, *sb.arrays, RAY_DIRS, float(r_min)

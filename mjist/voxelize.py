@@ -85,7 +85,7 @@ def _dilate_sorted(keys, axis, w, dims):
         head[bj] = i
         if i < n:
             val[bj] = keys[i] + o * step
-    return out[:m]
+    return out[:m].copy()  # a view would keep the (2w+1)x buffer alive
 
 
 @njit(cache=True)
@@ -149,11 +149,11 @@ class Voxelizer:
         keep = D > 0
         return P[keep], D[keep]
 
-    def band(self, level: int, *groups):
-        """Level-``level`` lattice points within a cube of some seed point.
+    def band_keys(self, level: int, *groups) -> np.ndarray:
+        """Sorted lattice keys of the level-``level`` points within a cube of some seed point.
 
         ``groups`` are ``(seeds (k, 3), half_width)`` pairs; the result is the union of the
-        groups' bands, sorted by lattice key.
+        groups' bands (8 bytes a point: the caller decodes it in chunks, see ``decode``).
         """
         h = self.spacing(level)
         dims = self.dims(level)
@@ -167,4 +167,8 @@ class Voxelizer:
             for axis in range(3):
                 keys = _dilate_sorted(keys, axis, w, dims)
             out = keys if len(out) == 0 else np.union1d(out, keys)
-        return decode(out, self.origin, h)
+        return out
+
+    def band(self, level: int, *groups) -> np.ndarray:
+        """The points of ``band_keys`` ``(n, 3)``."""
+        return decode(self.band_keys(level, *groups), self.origin, self.spacing(level))
