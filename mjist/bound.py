@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import BVH, STACK, sphere_gap, sphere_gap_xyz
+from .bvh import BVH, STACK, ball_gap, face_normal, sphere_gap, sphere_gap_xyz
 
 SUB_STACK = 256
 SEED_BUF = 32  # bad sub-triangle centroids kept per triangle in the first pass
@@ -61,7 +61,7 @@ def _gap_near(x, y, z, ja, jb, C, R, lo, hi, left, right, start, count, order, s
     jc = -1
     for j in (ja, jb):
         if j >= 0:
-            g = np.sqrt((x - C[j, 0]) ** 2 + (y - C[j, 1]) ** 2 + (z - C[j, 2]) ** 2) - R[j]
+            g = ball_gap(x, y, z, C, R, j)
             if g < bound:
                 bound = g
                 jc = j
@@ -78,8 +78,7 @@ def _sphere_ub(P, sp, C, R, j):
     """max over the triangle's vertices of the gap to sphere j (convex: its max over T)."""
     m = 0.0
     for w in range(3):
-        d = np.sqrt((P[sp, w, 0] - C[j, 0]) ** 2 + (P[sp, w, 1] - C[j, 1]) ** 2 + (P[sp, w, 2] - C[j, 2]) ** 2) - R[j]
-        m = max(m, d)
+        m = max(m, ball_gap(P[sp, w, 0], P[sp, w, 1], P[sp, w, 2], C, R, j))
     return m
 
 
@@ -102,10 +101,7 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
         G[0, v], J[0, v] = _gap_at(P[0, v, 0], P[0, v, 1], P[0, v, 2], C, R, lo, hi, left, right, start, count, order, stack)
     UBP[0] = np.inf
     sp = 1
-    # inward unit normal times inset (outward winding: the normal is (b-a)x(c-a))
-    e1x, e1y, e1z = P[0, 1, 0] - P[0, 0, 0], P[0, 1, 1] - P[0, 0, 1], P[0, 1, 2] - P[0, 0, 2]
-    e2x, e2y, e2z = P[0, 2, 0] - P[0, 0, 0], P[0, 2, 1] - P[0, 0, 1], P[0, 2, 2] - P[0, 0, 2]
-    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    nx, ny, nz = face_normal(V, F, f)  # outward: the seeds go -inset along it
     nn = np.sqrt(nx * nx + ny * ny + nz * nz)
     s_in = -inset / nn if nn > 0 else 0.0
     nx, ny, nz = nx * s_in, ny * s_in, nz * s_in
@@ -159,7 +155,7 @@ def _put(P, G, J, s, x0, y0, z0, g0, j0, x1, y1, z1, g1, j1, x2, y2, z2, g2, j2)
 
 @njit(cache=True, inline="always")
 def _sub_ub(P, G, J, sp, cov, ub_parent, C, R):
-    """Bound of sub-triangle ``sp`` from its vertex gaps (exact or upper bounds) and nearest spheres."""
+    """Bound of sub-triangle ``sp`` from its vertex gaps and the spheres nearest to its vertices."""
     ub = min(max(G[sp, 0], G[sp, 1], G[sp, 2]) + cov, ub_parent)
     j0, j1, j2 = J[sp, 0], J[sp, 1], J[sp, 2]
     if j0 >= 0:

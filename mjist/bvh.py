@@ -144,6 +144,21 @@ def _dot(ax, ay, az, bx, by, bz):
     return ax * bx + ay * by + az * bz
 
 
+@njit(cache=True, inline="always")
+def ball_gap(px, py, pz, C, R, j):
+    """Signed distance from a point to sphere ``j`` (negative inside it)."""
+    return np.sqrt((px - C[j, 0]) ** 2 + (py - C[j, 1]) ** 2 + (pz - C[j, 2]) ** 2) - R[j]
+
+
+@njit(cache=True, inline="always")
+def face_normal(V, F, f):
+    """Outward normal ``(b - a) x (c - a)`` of triangle ``f`` (not normalized)."""
+    a = F[f, 0]
+    e1x, e1y, e1z = V[F[f, 1], 0] - V[a, 0], V[F[f, 1], 1] - V[a, 1], V[F[f, 1], 2] - V[a, 2]
+    e2x, e2y, e2z = V[F[f, 2], 0] - V[a, 0], V[F[f, 2], 1] - V[a, 1], V[F[f, 2], 2] - V[a, 2]
+    return e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+
+
 @njit(cache=True)
 def closest_on_triangle(px, py, pz, V, i0, i1, i2):
     """Closest point to p on triangle (V[i0], V[i1], V[i2]) (Ericson, RTCD 5.1.5), scalar form.
@@ -354,19 +369,34 @@ def inside(p, V, F, lo, hi, left, right, start, count, order, stack, dirs):
     return 2 * votes > dirs.shape[0]
 
 
+@njit(cache=True)
+def inside_near(p, qx, qy, qz, tf, interior, V, F, lo, hi, left, right, start, count, order, stack, dirs):
+    """``inside`` for a point whose closest surface point ``q`` (on triangle ``tf``) is known.
+
+    When ``q`` lies inside the face, ``p - q`` is along the face normal and its side is the
+    answer (any exact closest point decides the side of a closed, outward-wound surface): no
+    ray is cast. Closest points on an edge or vertex fall back to parity ray casting.
+    """
+    if interior:
+        nx, ny, nz = face_normal(V, F, tf)
+        return (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz < 0.0
+    return inside(p, V, F, lo, hi, left, right, start, count, order, stack, dirs)
+
+
 @njit(cache=True, parallel=True)
 def signed_distance(P, V, F, lo, hi, left, right, start, count, order, dirs):
     """Signed distance of points ``P (n, 3)`` to a closed mesh: positive inside.
 
-    Magnitude from the BVH closest point, sign from ray parity (robust retries).
+    Magnitude from the BVH closest point, sign from that point's face or, at edges and
+    vertices, from ray parity (robust retries): see ``inside_near``.
     """
     n = P.shape[0]
     out = np.empty(n)
     for i in prange(n):
         stack = np.empty(STACK, np.int64)
-        d2, _, _, _, _, _ = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
+        d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
         d = np.sqrt(d2)
-        if inside(P[i], V, F, lo, hi, left, right, start, count, order, stack, dirs):
+        if inside_near(P[i], qx, qy, qz, tf, interior, V, F, lo, hi, left, right, start, count, order, stack, dirs):
             out[i] = d
         else:
             out[i] = -d
@@ -393,7 +423,7 @@ def sphere_gap_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, s
         if left[node] < 0:
             for i in range(start[node], start[node] + count[node]):
                 j = order[i]
-                g = np.sqrt((px - C[j, 0]) ** 2 + (py - C[j, 1]) ** 2 + (pz - C[j, 2]) ** 2) - R[j]
+                g = ball_gap(px, py, pz, C, R, j)
                 if g < best:
                     best = g
                     bi = j

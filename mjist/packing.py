@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import BVH, RAY_DIRS, STACK, inside, sphere_gap, tri_closest
+from .bvh import BVH, RAY_DIRS, STACK, inside_near, sphere_gap, tri_closest
 
 
 @njit(cache=True)
@@ -153,17 +153,10 @@ def _band_free(P, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, s
         if d < r_min:
             f[i] = -1.0
             continue
-        if interior:
-            # closest point inside a face: p - q is along its normal, whose side is the answer
-            # (any exact closest point decides the side of a closed, outward-wound surface)
-            a = F[tf, 0]
-            e1x, e1y, e1z = V[F[tf, 1], 0] - V[a, 0], V[F[tf, 1], 1] - V[a, 1], V[F[tf, 1], 2] - V[a, 2]
-            e2x, e2y, e2z = V[F[tf, 2], 0] - V[a, 0], V[F[tf, 2], 1] - V[a, 1], V[F[tf, 2], 2] - V[a, 2]
-            s = (P[i, 0] - qx) * (e1y * e2z - e1z * e2y) + (P[i, 1] - qy) * (e1z * e2x - e1x * e2z) + (P[i, 2] - qz) * (e1x * e2y - e1y * e2x)
-            is_in = s < 0.0
-        else:  # closest point on an edge or vertex: parity ray casting
-            is_in = inside(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs)
-        f[i] = d if is_in else -1.0
+        if not inside_near(P[i], qx, qy, qz, tf, interior, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
+            f[i] = -1.0
+            continue
+        f[i] = d
     return f
 
 
