@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"
 
@@ -50,7 +52,6 @@ def _child(path: str, max_error: float, save: str | None = None, min_coverage: f
 
 def _coal_bvh_time(path: str) -> float:
     import coal
-    import numpy as np
 
     import mjist
 
@@ -69,7 +70,10 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=str(ROOT / "out"))
     ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--repeat", type=int, default=1, help="builds per row; the row reports the median wall and stages")
+    ap.add_argument("--only", default="", help="comma-separated 'label@max_error' rows, e.g. 'mandible (real, m)@0.0001'")
     args = ap.parse_args()
+    only = {x.strip() for x in args.only.split(",") if x.strip()}
     os.makedirs(args.out, exist_ok=True)
     # warm numba's cache once so no build below pays compile time
     subprocess.run([sys.executable, "-c", "import mjist,trimesh; mjist.build(trimesh.creation.icosphere(3), max_error=0.05)"], check=True)
@@ -79,36 +83,50 @@ def main() -> int:
             errs = QUICK.get(label, [])
         if not errs or not path.exists():
             continue
-        coal_t = _coal_bvh_time(str(path))
+        coal_t = float(np.median([_coal_bvh_time(str(path)) for _ in range(3)]))  # the reference, same run
         for e in errs:
             e, fill = e if isinstance(e, tuple) else (e, None)
             cmd = [sys.executable, __file__, "--child", str(path), repr(e), "-"] + ([repr(fill)] if fill else [])
             label_run = label + (f" fill→{fill:g}" if fill else "")
-            try:
-                p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
-            except subprocess.TimeoutExpired:
-                rows.append({"mesh": label_run, "max_error": e, "error": f"timeout {args.timeout}s"})
-                print(f"{label_run:22s} ε≤{e:<8g} timeout")
+            if only and f"{label_run}@{e:g}" not in only:
                 continue
-            line = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
-            if not line:
-                rows.append({"mesh": label_run, "max_error": e, "error": p.stderr[-2000:]})
-                print(f"{label_run:22s} ε≤{e:<8g} failed: {p.stderr[-300:]}")
+            runs, failed = [], None
+            for _ in range(max(1, args.repeat)):
+                try:
+                    p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+                except subprocess.TimeoutExpired:
+                    failed = f"timeout {args.timeout}s"
+                    break
+                line = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
+                if not line:
+                    failed = p.stderr[-2000:]
+                    break
+                runs.append(json.loads(line[0][7:]))
+            if failed is not None:
+                rows.append({"mesh": label_run, "max_error": e, "error": failed})
+                print(f"{label_run:22s} ε≤{e:<8g} failed: {failed[-300:]}")
                 continue
-            s = json.loads(line[0][7:])
+            # median over the repeats (same tree every time: only the timings differ)
+            s = runs[0]
+            walls = [r["wall"] for r in runs]
+            s["walls"] = walls
+            s["wall"] = float(np.median(walls))
+            s["timings"] = {k: float(np.median([r["timings"][k] for r in runs])) for k in s["timings"]}
+            s["peak_rss_mb"] = float(np.median([r["peak_rss_mb"] for r in runs]))
             s.update(mesh=label_run, min_coverage=fill, path=str(path), max_error=e, coal_bvh_build_s=coal_t)
             rows.append(s)
             print(
                 f"{label_run:22s} ε≤{e:<8g} ε={s['error_bound']:.3g} leaves={s['leaves']:>8d} depth={s['depth']:>2d} "
-                f"coverage={100 * s['coverage']:.1f}% wall={s['wall']:.1f}s peak={s['peak_rss_mb']:.0f}MB "
-                f"(coal BVH {coal_t * 1e3:.0f} ms)",
+                f"coverage={100 * s['coverage']:.1f}% wall={s['wall']:.1f}s (median of {len(walls)}) peak={s['peak_rss_mb']:.0f}MB "
+                f"(coal BVH {coal_t * 1e3:.0f} ms, ratio {s['wall'] / coal_t:.0f}x)",
                 flush=True,
             )
     info = {
         "machine": platform.platform(),
         "cpus": os.cpu_count(),
         "python": sys.version.split()[0],
-        "command": " ".join(["python", "scripts/bench_build.py"] + (["--quick"] if args.quick else [])),
+        "command": " ".join(["python", "scripts/bench_build.py"] + (["--quick"] if args.quick else [])
+                            + ([f"--repeat {args.repeat}"] if args.repeat > 1 else []) + ([f"--only '{args.only}'"] if only else [])),
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }
     with open(os.path.join(args.out, "bench_build.json"), "w") as fh:
@@ -125,18 +143,18 @@ def markdown(info, rows) -> str:
     out = [
         f"`{info['command']}` on {info['machine']}, {info['cpus']} CPUs, Python {info['python']}, {info['date']}.",
         "",
-        "| mesh | max_error | certified ε | ε lower | leaves | nodes | depth | coverage | voxelize s | pack s | hierarchy s | bound s | total s | peak MB | coal BVH ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| mesh | max_error | certified ε | ε lower | leaves | nodes | depth | coverage | voxelize s | pack s | hierarchy s | bound s | total s | peak MB | coal BVH ms | total / coal BVH |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error_bound" not in r:
-            out.append(f"| {r['mesh']} | {r['max_error']:g} | {r['error'].splitlines()[-1][:60] if r['error'] else 'failed'} |" + " |" * 12)
+            out.append(f"| {r['mesh']} | {r['max_error']:g} | {r['error'].splitlines()[-1][:60] if r['error'] else 'failed'} |" + " |" * 13)
             continue
         t = r["timings"]
         out.append(
             f"| {r['mesh']} | {r['max_error']:g} | {r['error_bound']:.3g} | {r['error_lower']:.3g} | {r['leaves']} | {r['nodes']} | "
             f"{r['depth']} | {100 * r['coverage']:.1f} % | {t['voxelize']:.1f} | {t['pack']:.1f} | {t['hierarchy']:.1f} | "
-            f"{t['bound']:.1f} | {r['wall']:.1f} | {r['peak_rss_mb']:.0f} | {1e3 * r['coal_bvh_build_s']:.0f} |"
+            f"{t['bound']:.1f} | {r['wall']:.1f} | {r['peak_rss_mb']:.0f} | {1e3 * r['coal_bvh_build_s']:.0f} | {r['wall'] / r['coal_bvh_build_s']:.0f}× |"
         )
     return "\n".join(out) + "\n"
 
