@@ -234,9 +234,12 @@ def build(
         R = np.concatenate([R, Rn])
         t_pack += time.perf_counter() - tp
         levels = level
-        level_log.append({"level": level, "spacing": h, "open_faces": int(len(open_faces)), "seeds": int(len(seeds)),
-                          "band_points": int(n_band), "candidates": int(len(P)), "spheres": int(len(Rn)), "certify_bound": float(ub) if np.isfinite(ub) else None, "certify_seconds": dt_cert,
-                          "seconds": time.perf_counter() - t_level})
+        level_log.append({
+            "level": level, "spacing": h, "open_faces": int(len(open_faces)), "seeds": int(len(seeds)),
+            "band_points": int(n_band), "candidates": int(len(P)), "spheres": int(len(Rn)),
+            "certify_bound": float(ub) if np.isfinite(ub) else None, "certify_seconds": dt_cert,
+            "seconds": time.perf_counter() - t_level,
+        })
     timings["voxelize"] = t_vox
     timings["pack"] = t_pack
     if len(R) == 0:

@@ -168,7 +168,3 @@ class Voxelizer:
                 keys = _dilate_sorted(keys, axis, w, dims)
             out = keys if len(out) == 0 else np.union1d(out, keys)
         return out
-
-    def band(self, level: int, *groups) -> np.ndarray:
-        """The points of ``band_keys`` ``(n, 3)``."""
-        return decode(self.band_keys(level, *groups), self.origin, self.spacing(level))

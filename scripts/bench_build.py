@@ -71,9 +71,9 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "out"))
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--repeat", type=int, default=1, help="builds per row; the row reports the median wall and stages")
-    ap.add_argument("--only", default="", help="comma-separated 'label@max_error' rows, e.g. 'mandible (real, m)@0.0001'")
+    ap.add_argument("--only", default="", help="';'-separated 'label@max_error' rows, e.g. 'mandible (real, m)@0.0001'")
     args = ap.parse_args()
-    only = {x.strip() for x in args.only.split(",") if x.strip()}
+    only = {x.strip() for x in args.only.split(";") if x.strip()}  # labels contain commas
     os.makedirs(args.out, exist_ok=True)
     # warm numba's cache once so no build below pays compile time
     subprocess.run([sys.executable, "-c", "import mjist,trimesh; mjist.build(trimesh.creation.icosphere(3), max_error=0.05)"], check=True)
@@ -121,6 +121,10 @@ def main() -> int:
                 f"(coal BVH {coal_t * 1e3:.0f} ms, ratio {s['wall'] / coal_t:.0f}x)",
                 flush=True,
             )
+    if only and not rows:
+        names = [f"{lab}@{(e[0] if isinstance(e, tuple) else e):g}" for lab, _, errs in CASES for e in errs]
+        print(f"--only matched no row (or its mesh is missing); rows are: {'; '.join(names)}", file=sys.stderr)
+        return 2
     info = {
         "machine": platform.platform(),
         "cpus": os.cpu_count(),
