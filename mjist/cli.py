@@ -47,7 +47,8 @@ def _cmd_build(args) -> int:
                 warnings.simplefilter("always")
                 tree = build(
                     mesh, max_error=args.max_error, leaves=args.leaves, branching=args.branching,
-                    seed=args.seed, repair=args.repair, min_coverage=args.min_coverage, progress=not args.quiet,
+                    seed=args.seed, repair=args.repair, min_coverage=args.min_coverage, sparse=args.sparse,
+                    progress=not args.quiet,
                 )
         except (MeshError, ValueError) as exc:
             print(f"mjist build: {mesh}: {exc}", file=sys.stderr)
@@ -176,6 +177,8 @@ def main(argv=None) -> int:
     b.add_argument("--seed", type=int, default=0, help="clustering seed (default 0)")
     b.add_argument("--min-coverage", type=float, default=None,
                    help="also fill interior gaps until the leaves fill this volume fraction (e.g. 0.85)")
+    b.add_argument("--sparse", action="store_true",
+                   help="keep only spheres that close a surface gap: same ε, fewer leaves (for queries, not resting contact)")
     b.add_argument("--repair", action="store_true", help="let trimesh fix winding, inversion, holes, degenerate faces")
     b.add_argument("--json", help="also write the report as JSON to this file")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

@@ -59,8 +59,66 @@ def _heap_pop(hk, hi, n):
     return key, idx, n
 
 
+NO_SEEDS = (np.empty((0, 3)), np.empty(0, np.int64), np.zeros(1, np.int64), 1.0, 0.0)  # greedy_pack without the cover test
+_CELL_MAX = (1 << 21) - 1
+
+
+def seed_grid(seeds, origin, g, reach):
+    """Seeds sorted into a grid of cell ``g`` for ``greedy_pack``'s cover test.
+
+    Returns ``(S, cell_keys, cell_start, g, reach)``: the seeds in cell order, each occupied
+    cell's key (as ``voxelize.encode``) and where its seeds start in ``S``; ``reach`` is the
+    gap a sphere must bring a seed below to count as covering it.
+    """
+    S = np.ascontiguousarray(seeds, dtype=np.float64)
+    if len(S) == 0:
+        return NO_SEEDS
+    cell = np.clip(np.floor((S - origin) / g), 0, _CELL_MAX).astype(np.int64)
+    k = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+    o = np.argsort(k, kind="stable")
+    ck, first = np.unique(k[o], return_index=True)
+    return S[o], ck, np.append(first, len(S)).astype(np.int64), float(g), float(reach)
+
+
 @njit(cache=True)
-def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink):
+def _cover_seeds(cx, cy, cz, reach, S, ckeys, cstart, cend, origin, g):
+    """Remove the seeds within ``reach`` of ``c``; True if there were any.
+
+    A removed seed is swapped behind its cell's live end (``cend``), so later scans only
+    walk seeds still uncovered: most candidates near the surface reach only covered ones.
+    """
+    hit = False
+    lo0 = max(int(np.floor((cx - reach - origin[0]) / g)), 0)
+    hi0 = min(int(np.floor((cx + reach - origin[0]) / g)), _CELL_MAX)
+    lo1 = max(int(np.floor((cy - reach - origin[1]) / g)), 0)
+    hi1 = min(int(np.floor((cy + reach - origin[1]) / g)), _CELL_MAX)
+    lo2 = max(int(np.floor((cz - reach - origin[2]) / g)), 0)
+    hi2 = min(int(np.floor((cz + reach - origin[2]) / g)), _CELL_MAX)
+    r2 = reach * reach
+    for a in range(lo0, hi0 + 1):
+        for b in range(lo1, hi1 + 1):
+            base = (a << 42) | (b << 21)
+            u0 = np.searchsorted(ckeys, base | lo2)
+            u1 = np.searchsorted(ckeys, base | hi2, side="right")
+            for u in range(u0, u1):
+                j = cstart[u]
+                while j < cend[u]:
+                    dx = S[j, 0] - cx
+                    dy = S[j, 1] - cy
+                    dz = S[j, 2] - cz
+                    if dx * dx + dy * dy + dz * dz <= r2:
+                        e = cend[u] - 1
+                        for d in range(3):
+                            S[j, d], S[e, d] = S[e, d], S[j, d]
+                        cend[u] = e
+                        hit = True
+                    else:
+                        j += 1
+    return hit
+
+
+@njit(cache=True)
+def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart, g, cover):
     """Greedy packing over lattice candidates.
 
     Parameters
@@ -71,6 +129,14 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink):
     r_min : candidates whose free distance drops below this are discarded.
     max_new : stop after this many spheres.
     shrink : relative shrink of each radius, keeps rounding from creating overlaps.
+    S, ckeys, cstart, g, cover : seeds (points where the surface gap is still too large) in a
+        grid of cell ``g`` (see ``seed_grid``; ``S`` is not modified). When given, a candidate
+        becomes a sphere only if it brings some seed not yet covered within ``cover`` of its
+        surface; the others are dropped. Near the surface a band of spheres of the lattice's size covers each seed
+        many times over (a sphere of radius r reaches a surface gap ε over a disc of radius
+        about sqrt(2 r ε + ε²), far wider than the 2r spacing of its neighbours once ε > r),
+        so this keeps the spheres that close gaps and drops the redundant ones.
+        ``NO_SEEDS`` turns it off (level 0, interior fill).
 
     Returns
     -------
@@ -84,6 +150,9 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink):
         if f[i] >= r_min:
             hn = _heap_push(hk, hix, hn, f[i], i)
     alive = f >= r_min
+    ns = S.shape[0]
+    S = S.copy()  # the cover test reorders seeds within their cells
+    cend = cstart[1:].copy()
     C = np.empty((min(n, max_new), 3))
     R = np.empty(min(n, max_new))
     k = 0
@@ -99,6 +168,9 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink):
             continue
         r = f[i] * (1.0 - shrink)
         c = P[i]
+        if ns > 0 and not _cover_seeds(c[0], c[1], c[2], r + cover, S, ckeys, cstart, cend, origin, g):
+            alive[i] = False  # every seed it reaches is covered already: it would close no gap
+            continue
         C[k] = c
         R[k] = r
         k += 1
@@ -120,10 +192,10 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink):
                 for j in range(j0, j1):
                     if not alive[j]:
                         continue
-                    g = np.sqrt((P[j, 0] - c[0]) ** 2 + (P[j, 1] - c[1]) ** 2 + (P[j, 2] - c[2]) ** 2) - r
-                    if g < f[j]:
-                        f[j] = g
-                        if g < r_min:
+                    gap = np.sqrt((P[j, 0] - c[0]) ** 2 + (P[j, 1] - c[1]) ** 2 + (P[j, 2] - c[2]) ** 2) - r
+                    if gap < f[j]:
+                        f[j] = gap
+                        if gap < r_min:
                             alive[j] = False
     return C[:k].copy(), R[:k].copy()
 

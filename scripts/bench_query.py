@@ -43,15 +43,18 @@ def pairs_available():
     return out
 
 
+SPARSE = False  # --sparse: trees built with mjist.build(..., sparse=True)
+
+
 def tree_for(path, eps, name, cache):
     mesh = mjist.load_mesh(path)
-    f = cache / f"{name}_{eps:g}.ist.npz"
+    f = cache / f"{name}_{eps:g}{'_sparse' if SPARSE else ''}.ist.npz"
     try:
         return mjist.load_tree(f, expect_hash=mesh.content_hash), mesh
     except mjist.TreeFileError:
         pass
     print(f"  building {name} at ε {eps * 1e3:g} mm ...", flush=True)
-    t = mjist.build(mesh.trimesh(), max_error=eps)
+    t = mjist.build(mesh.trimesh(), max_error=eps, sparse=SPARSE)
     t.save(f)
     return t, mesh
 
@@ -366,7 +369,8 @@ def plot(results, path):
 
 
 def markdown(results, meta):
-    lines = [f"Query benchmark ({meta['frames']} frames of one chewing motion; {meta['machine']}).", ""]
+    trees = "; sparse trees (build(..., sparse=True))" if meta.get("sparse") else ""
+    lines = [f"Query benchmark ({meta['frames']} frames of one chewing motion; {meta['machine']}{trees}).", ""]
     lines.append("| pair | ε_A+ε_B mm | leaves | depth | method | median µs | p99 µs | kernel µs | visits (median) | × coal | max err mm | bound viol. |")
     lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for label, r in results.items():
@@ -401,7 +405,10 @@ def main(argv=None):
     ap.add_argument("--pairs", default="real,bundled")
     ap.add_argument("--quick", action="store_true", help="400 frames, ε 4e-4 only, CoACD only if already decomposed")
     ap.add_argument("--out", default=str(ROOT / "out"))
+    ap.add_argument("--sparse", action="store_true", help="build the trees with sparse=True (same ε, fewer leaves)")
     a = ap.parse_args(argv)
+    global SPARSE
+    SPARSE = a.sparse
     eps = [(4e-4, 4e-4)] if a.quick else [parse_eps(x) for x in a.eps.split(",")]
     frames = 400 if a.quick else a.frames
     out = Path(a.out)
@@ -414,7 +421,7 @@ def main(argv=None):
         return 2
     results = {p: run_pair(p, avail[p], eps, frames, cache, decompose=not a.quick) for p in want}
     meta = {"frames": frames, "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-            "mjist": mjist.__version__, "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", 0) or 0)}
+            "mjist": mjist.__version__, "sparse": SPARSE, "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", 0) or 0)}
     (out / "bench_query.json").write_text(json.dumps({"meta": meta, "results": results}))
     plot(results, out / "bench_query.png")
     (out / "bench_query.md").write_text(markdown(results, meta))

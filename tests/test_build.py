@@ -268,3 +268,37 @@ def test_band_dilation_matches_sort_unique():
             ref = np.unique(np.concatenate([keys[(c + o >= 0) & (c + o < dims[axis])] + o * (1 << shift)
                                             for o in range(-w, w + 1)]))
             assert np.array_equal(_dilate_sorted(keys, axis, w, dims), ref)
+
+
+def test_cover_test_removes_exactly_the_seeds_in_reach():
+    """packing._cover_seeds against brute force: each call reports whether any live seed lay
+    within reach, and a removed seed is never reported again (seed order inside cells changes)."""
+    from mjist.packing import _cover_seeds, seed_grid
+
+    rng = np.random.default_rng(11)
+    seeds = rng.random((4000, 3))
+    origin = np.zeros(3)
+    S, ck, cs, g, _ = seed_grid(seeds, origin, 0.07, 0.0)
+    S = S.copy()
+    cend = cs[1:].copy()
+    live = np.ones(len(seeds), bool)
+    for c, reach in zip(rng.random((300, 3)), rng.uniform(0.0, 0.12, 300)):
+        near = live & (np.linalg.norm(seeds - c, axis=1) <= reach)
+        assert _cover_seeds(c[0], c[1], c[2], reach, S, ck, cs, cend, origin, g) == near.any()
+        live &= ~near
+        remaining = np.concatenate([S[cs[u]:cend[u]] for u in range(len(ck))])
+        assert len(remaining) == live.sum()
+        assert np.array_equal(np.unique(remaining, axis=0), np.unique(seeds[live], axis=0))
+
+
+def test_sparse_drops_redundant_spheres_not_the_bound():
+    """sparse=True drops the spheres that close no gap near the surface: fewer leaves, ε still met."""
+    mesh = torus()
+    on = mjist.build(mesh, max_error=0.01, sparse=True)
+    off = mjist.build(mesh, max_error=0.01)
+    assert on.error_bound <= 0.01 and off.error_bound <= 0.01
+    assert on.num_leaves < 0.9 * off.num_leaves
+    assert on.params["sparse"] and not off.params["sparse"]
+    for bad in ({"leaves": 100}, {"max_error": 0.05, "min_coverage": 0.8}):
+        with pytest.raises(ValueError, match="sparse"):
+            mjist.build(mesh, sparse=True, **bad)
