@@ -59,25 +59,31 @@ def _heap_pop(hk, hi, n):
     return key, idx, n
 
 
-NO_SEEDS = (np.empty((0, 3)), np.empty(0, np.int64), np.zeros(1, np.int64), 1.0, 0.0)  # greedy_pack without the cover test
+NO_SEEDS = (np.empty((0, 3), np.float32), np.empty(0, np.int64), np.zeros(1, np.int64), 1.0, 0.0)  # greedy_pack without the cover test
 _CELL_MAX = (1 << 21) - 1
 
 
 def seed_grid(seeds, origin, g, reach):
     """Seeds sorted into a grid of cell ``g`` for ``greedy_pack``'s cover test.
 
-    Returns ``(S, cell_keys, cell_start, g, reach)``: the seeds in cell order, each occupied
+    Returns ``(S, cell_keys, cell_start, g, reach)``: the seeds in cell order (float32: a
+    filter needs no more, and a fine level has tens of millions of seeds), each occupied
     cell's key (as ``voxelize.encode``) and where its seeds start in ``S``; ``reach`` is the
-    gap a sphere must bring a seed below to count as covering it.
+    gap a sphere must bring a seed below to count as covering it. ``greedy_pack`` reorders
+    ``S`` within its cells: one grid per call.
     """
-    S = np.ascontiguousarray(seeds, dtype=np.float64)
-    if len(S) == 0:
+    if len(seeds) == 0:
         return NO_SEEDS
-    cell = np.clip(np.floor((S - origin) / g), 0, _CELL_MAX).astype(np.int64)
-    k = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+    k = np.zeros(len(seeds), np.int64)
+    for d, shift in enumerate((42, 21, 0)):  # one axis at a time: no (n, 3) temporaries
+        k |= np.clip(np.floor((seeds[:, d] - origin[d]) / g), 0, _CELL_MAX).astype(np.int64) << shift
     o = np.argsort(k, kind="stable")
-    ck, first = np.unique(k[o], return_index=True)
-    return S[o], ck, np.append(first, len(S)).astype(np.int64), float(g), float(reach)
+    k = k[o]
+    first = np.flatnonzero(np.concatenate([[True], k[1:] != k[:-1]]))
+    S = np.empty((len(o), 3), np.float32)
+    for d in range(3):
+        S[:, d] = seeds[o, d]
+    return S, k[first], np.append(first, len(S)).astype(np.int64), float(g), float(reach)
 
 
 @njit(cache=True)
@@ -130,12 +136,13 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart,
     max_new : stop after this many spheres.
     shrink : relative shrink of each radius, keeps rounding from creating overlaps.
     S, ckeys, cstart, g, cover : seeds (points where the surface gap is still too large) in a
-        grid of cell ``g`` (see ``seed_grid``; ``S`` is not modified). When given, a candidate
-        becomes a sphere only if it brings some seed not yet covered within ``cover`` of its
-        surface; the others are dropped. Near the surface a band of spheres of the lattice's size covers each seed
-        many times over (a sphere of radius r reaches a surface gap ε over a disc of radius
-        about sqrt(2 r ε + ε²), far wider than the 2r spacing of its neighbours once ε > r),
-        so this keeps the spheres that close gaps and drops the redundant ones.
+        grid of cell ``g`` (see ``seed_grid``; ``S`` is reordered within its cells). When
+        given, a candidate becomes a sphere only if it brings some seed not yet covered within
+        ``cover`` of its surface; the others are dropped. Near the surface a band of spheres
+        of the lattice's size covers each seed many times over (a sphere of radius r reaches
+        a surface gap ε over a disc of radius about sqrt(2 r ε + ε²), far wider than the 2r
+        spacing of its neighbours once ε > r), so this keeps the spheres that close gaps and
+        drops the redundant ones.
         ``NO_SEEDS`` turns it off (level 0, interior fill).
 
     Returns
@@ -151,7 +158,6 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart,
             hn = _heap_push(hk, hix, hn, f[i], i)
     alive = f >= r_min
     ns = S.shape[0]
-    S = S.copy()  # the cover test reorders seeds within their cells
     cend = cstart[1:].copy()
     C = np.empty((min(n, max_new), 3))
     R = np.empty(min(n, max_new))

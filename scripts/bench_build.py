@@ -24,23 +24,27 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"
 
-# (label, path, max_error values in mesh units; (max_error, min_coverage) also fills the interior)
+# (label, path, max_error values in mesh units; (max_error, min_coverage) also fills the interior,
+# (max_error, "sparse") builds with sparse=True)
 CASES = [
     ("mandible (bundled, m)", ROOT / "models" / "mandible.obj", [4e-4, 2e-4, (5e-4, 0.9)]),
     ("maxilla (bundled, m)", ROOT / "models" / "maxilla.obj", [4e-4, 2e-4]),
-    ("mandible (real, m)", SHARED / "jaw" / "mandible.obj", [1e-3, 4e-4, 2e-4, 1e-4, 5e-5, (4e-4, 0.9)]),
-    ("maxilla (real, m)", SHARED / "jaw" / "maxilla.obj", [1e-3, 4e-4, 2e-4, 1e-4]),
+    ("mandible (real, m)", SHARED / "jaw" / "mandible.obj", [1e-3, 4e-4, 2e-4, 1e-4, 5e-5, (4e-4, 0.9),
+                                                                  (1e-4, "sparse"), (5e-5, "sparse")]),
+    ("maxilla (real, m)", SHARED / "jaw" / "maxilla.obj", [1e-3, 4e-4, 2e-4, 1e-4, (1e-4, "sparse"), (5e-5, "sparse")]),
     ("bunny (mm)", SHARED / "stanford" / "bunny.obj", [2.0, 1.0, 0.5]),
     ("dragon (unitless)", SHARED / "stanford" / "dragon.obj", [0.01, 0.005]),
 ]
 QUICK = {"mandible (bundled, m)": [1e-3], "mandible (real, m)": [1e-3, 4e-4]}
 
 
-def _child(path: str, max_error: float, save: str | None = None, min_coverage: float | None = None) -> None:
+def _child(path: str, max_error: float, save: str | None = None, variant: str | None = None) -> None:
+    """One build; ``variant`` is a min_coverage value or "sparse"."""
     import mjist
 
+    kw = {"sparse": True} if variant == "sparse" else {"min_coverage": float(variant)} if variant else {}
     t = time.perf_counter()
-    tree = mjist.build(path, max_error=max_error, min_coverage=min_coverage)
+    tree = mjist.build(path, max_error=max_error, **kw)
     wall = time.perf_counter() - t
     if save:
         tree.save(save)
@@ -85,9 +89,11 @@ def main() -> int:
             continue
         coal_t = float(np.median([_coal_bvh_time(str(path)) for _ in range(3)]))  # the reference, same run
         for e in errs:
-            e, fill = e if isinstance(e, tuple) else (e, None)
-            cmd = [sys.executable, __file__, "--child", str(path), repr(e), "-"] + ([repr(fill)] if fill else [])
-            label_run = label + (f" fill→{fill:g}" if fill else "")
+            e, variant = e if isinstance(e, tuple) else (e, None)
+            sparse = variant == "sparse"
+            fill = None if sparse else variant
+            cmd = [sys.executable, __file__, "--child", str(path), repr(e), "-"] + (["sparse" if sparse else repr(fill)] if variant else [])
+            label_run = label + (" sparse" if sparse else f" fill→{fill:g}" if fill else "")
             if only and f"{label_run}@{e:g}" not in only:
                 continue
             runs, failed = [], None
@@ -113,7 +119,7 @@ def main() -> int:
             s["wall"] = float(np.median(walls))
             s["timings"] = {k: float(np.median([r["timings"][k] for r in runs])) for k in s["timings"]}
             s["peak_rss_mb"] = float(np.median([r["peak_rss_mb"] for r in runs]))
-            s.update(mesh=label_run, min_coverage=fill, path=str(path), max_error=e, coal_bvh_build_s=coal_t)
+            s.update(mesh=label_run, min_coverage=fill, sparse=sparse, path=str(path), max_error=e, coal_bvh_build_s=coal_t)
             rows.append(s)
             print(
                 f"{label_run:22s} ε≤{e:<8g} ε={s['error_bound']:.3g} leaves={s['leaves']:>8d} depth={s['depth']:>2d} "
@@ -188,8 +194,8 @@ def _plot(rows, path):
 
 
 if __name__ == "__main__":
-    if 4 <= len(sys.argv) <= 6 and sys.argv[1] == "--child":  # --child MESH MAX_ERROR [SAVE_TREE|-] [MIN_COVERAGE]
+    if 4 <= len(sys.argv) <= 6 and sys.argv[1] == "--child":  # --child MESH MAX_ERROR [SAVE_TREE|-] [MIN_COVERAGE|sparse]
         a = sys.argv + [None] * (6 - len(sys.argv))
-        _child(a[2], float(a[3]), a[4] if a[4] not in (None, "-") else None, float(a[5]) if a[5] else None)
+        _child(a[2], float(a[3]), a[4] if a[4] not in (None, "-") else None, a[5])
         sys.exit(0)
     sys.exit(main())

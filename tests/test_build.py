@@ -276,7 +276,7 @@ def test_cover_test_removes_exactly_the_seeds_in_reach():
     from mjist.packing import _cover_seeds, seed_grid
 
     rng = np.random.default_rng(11)
-    seeds = rng.random((4000, 3))
+    seeds = rng.random((4000, 3)).astype(np.float32).astype(np.float64)  # the grid keeps float32
     origin = np.zeros(3)
     S, ck, cs, g, _ = seed_grid(seeds, origin, 0.07, 0.0)
     S = S.copy()
