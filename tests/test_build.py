@@ -39,6 +39,7 @@ SHAPES = {
     "torus": (torus, 0.04),
     "two_shells": (two_shells, 0.05),
     "torus_filled": (torus, 0.04, {"min_coverage": 0.82}),  # interior gaps filled too
+    "torus_sparse": (torus, 0.02, {"sparse": True}),  # only spheres that close a surface gap
 }
 _cache = {}
 
