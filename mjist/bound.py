@@ -29,6 +29,13 @@ from .bvh import BVH, STACK, ball_gap, face_normal, sphere_gap, sphere_gap_xyz
 
 SUB_STACK = 256
 SEED_BUF = 32  # bad sub-triangle centroids kept per triangle in the first pass
+# A sub-triangle's place in its triangle's fixed midpoint quadtree, as a key: two bits per level
+# from the top, left-aligned to PATH_DEPTH levels, shifted left by DEPTH_BITS to hold the depth.
+# A sub-triangle's descendants are the keys in [path, path + 4**(PATH_DEPTH - depth)) << DEPTH_BITS;
+# (path, depth) itself names it exactly. Deeper leaves are recorded by their ancestor at
+# PATH_DEPTH (conservative: everything below it is walked again).
+PATH_DEPTH = 28
+DEPTH_BITS = 5
 
 
 @njit(cache=True, inline="always")
@@ -83,9 +90,17 @@ def _sphere_ub(P, sp, C, R, j):
 
 
 @njit(cache=True)
-def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, target, min_size, stack, seeds, inset):
+def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, target, min_size, stack, seeds, inset,
+                      prev, paths):
     """Bound for triangle ``F[f]``. Returns (ub, lb, n_bad); writes the first ``len(seeds)`` bad
-    centroids to ``seeds``, moved ``inset`` into the solid along the face normal.
+    centroids to ``seeds``, moved ``inset`` into the solid along the face normal, and their
+    quadtree keys to ``paths``.
+
+    ``prev``: the sorted keys of this triangle's bad sub-triangles from an earlier walk with the
+    same target and fewer spheres (empty: walk everything). A sub-triangle that neither holds
+    one of them nor lies inside one was covered by that walk's good sub-triangles, every part at
+    or below the target then; gaps only shrink as spheres are added, so it is not walked again
+    and counts as ``target`` in the returned bound. Inside a bad one everything is walked.
 
     Stack entries carry their vertices, the gaps and nearest spheres there, and the parent's
     bound (a sub-triangle's bound never exceeds its parent's: it lies inside it). Everything
@@ -95,6 +110,13 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
     G = np.empty((SUB_STACK, 3))
     J = np.empty((SUB_STACK, 3), np.int64)
     UBP = np.empty(SUB_STACK)
+    KEY = np.empty(SUB_STACK, np.int64)
+    DEP = np.empty(SUB_STACK, np.int64)
+    ALL = np.empty(SUB_STACK, np.bool_)  # inside an earlier bad sub-triangle: walk everything
+    KEY[0] = 0
+    DEP[0] = 0
+    n_prev = prev.shape[0]
+    ALL[0] = n_prev == 0
     for v in range(3):
         for d in range(3):
             P[0, v, d] = V[F[f, v], d]
@@ -110,6 +132,14 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
     nbad = 0
     while sp > 0:
         sp -= 1
+        key, dep, walk_all = KEY[sp], DEP[sp], ALL[sp]
+        code = (key << DEPTH_BITS) | dep
+        if not walk_all:
+            j = np.searchsorted(prev, code)
+            if j == n_prev or prev[j] >= (key + (np.int64(1) << (2 * (PATH_DEPTH - dep)))) << DEPTH_BITS:
+                ub_max = max(ub_max, target)  # certified at or below target by the earlier walk
+                continue
+            walk_all = prev[j] == code  # an earlier bad leaf itself: all of it again
         ax, ay, az = P[sp, 0, 0], P[sp, 0, 1], P[sp, 0, 2]
         bx, by, bz = P[sp, 1, 0], P[sp, 1, 1], P[sp, 1, 2]
         cx, cy, cz = P[sp, 2, 0], P[sp, 2, 1], P[sp, 2, 2]
@@ -125,6 +155,7 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
                     seeds[nbad, 0] = (ax + bx + cx) / 3.0 + nx
                     seeds[nbad, 1] = (ay + by + cy) / 3.0 + ny
                     seeds[nbad, 2] = (az + bz + cz) / 3.0 + nz
+                    paths[nbad] = code
                 nbad += 1
             continue
         abx, aby, abz = 0.5 * (ax + bx), 0.5 * (ay + by), 0.5 * (az + bz)
@@ -140,6 +171,13 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
         _put(P, G, J, sp, ax, ay, az, g0, j0, abx, aby, abz, gab, jab, cax, cay, caz, gca, jca)
         for q in range(4):
             UBP[sp + q] = ub
+            ALL[sp + q] = walk_all
+            if dep < PATH_DEPTH:
+                KEY[sp + q] = key + (np.int64(q) << (2 * (PATH_DEPTH - dep - 1)))
+                DEP[sp + q] = dep + 1
+            else:  # past the key's resolution: children share the ancestor's key
+                KEY[sp + q] = key
+                DEP[sp + q] = dep
         sp += 4
     return ub_max, lb_max, nbad
 
@@ -168,8 +206,10 @@ def _sub_ub(P, G, J, sp, cov, ub_parent, C, R):
 
 
 @njit(cache=True, parallel=True)
-def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size, buf, inset):
-    """Every triangle's bound; its first ``buf.shape[1]`` bad centroids go to ``buf[t]``."""
+def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size, buf, inset,
+                 prev, prev_off, pbuf):
+    """Every triangle's bound; its first ``buf.shape[1]`` bad centroids go to ``buf[t]``, their
+    keys to ``pbuf[t]``; ``prev[prev_off[t]:prev_off[t + 1]]`` are its earlier bad keys."""
     nf = faces.shape[0]
     ub = np.empty(nf)
     lb = np.empty(nf)
@@ -178,18 +218,20 @@ def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, ta
         stack = np.empty(STACK, np.int64)
         ub[t], lb[t], nbad[t] = _certify_triangle(
             V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, stack, buf[t], inset,
+            target, min_size, stack, buf[t], inset, prev[prev_off[t]:prev_off[t + 1]], pbuf[t],
         )
     return ub, lb, nbad
 
 
 @njit(cache=True, parallel=True)
-def _emit_bad(V, F, faces, offsets, C, R, lo, hi, left, right, start, count, order, target, min_size, seeds, inset):
+def _emit_bad(V, F, faces, offsets, C, R, lo, hi, left, right, start, count, order, target, min_size, seeds, inset,
+              prev, prev_off, paths):
     for t in prange(faces.shape[0]):
         stack = np.empty(STACK, np.int64)
         _certify_triangle(
             V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
             target, min_size, stack, seeds[offsets[t]:offsets[t + 1]], inset,
+            prev[prev_off[t]:prev_off[t + 1]], paths[offsets[t]:offsets[t + 1]],
         )
 
 
@@ -210,44 +252,99 @@ def certify(V, F, C, R, target: float, min_size: float, want_seeds: bool = False
     lb : float, a lower bound of the true one-sided Hausdorff distance.
     seeds : (k, 3) centroids of the regions still above ``target`` (empty unless asked).
     """
-    ub, lb, seeds = certify_faces(V, F, np.arange(len(F), dtype=np.int64), C, R, target, min_size, want_seeds, bvh)
+    ub, lb, seeds, _ = certify_faces(V, F, np.arange(len(F), dtype=np.int64), C, R, target, min_size, want_seeds, bvh)
     return float(ub.max()), float(lb.max()), seeds
 
 
 def certify_faces(
-    V, F, faces, C, R, target: float, min_size: float, want_seeds: bool = False, bvh: BVH | None = None, seed_inset: float = 0.0
+    V, F, faces, C, R, target: float, min_size: float, want_seeds: bool = False, bvh: BVH | None = None,
+    seed_inset: float = 0.0, prev=None,
 ):
     """``certify`` on the triangles ``faces`` only, per triangle.
 
     Adding spheres only shrinks gaps, so a triangle certified below ``target`` stays so: the
-    builder re-certifies only the triangles still open at the previous lattice level.
+    builder re-certifies only the triangles still open at the previous lattice level, and
+    inside them only the sub-triangles that were still open (``prev``).
+
+    Parameters
+    ----------
+    prev : (keys, offsets), optional
+        Per triangle of ``faces``, the sorted quadtree keys of its sub-triangles above
+        ``target`` in an earlier call with the same ``target`` and ``min_size`` no smaller
+        than this one's, and a subset of these spheres (the ``paths`` it returned, restricted
+        to these triangles); the rest of each triangle is not walked again.
 
     Returns
     -------
     ub, lb : (len(faces),) per-triangle bound and lower bound.
     seeds : (k, 3) centroids of the sub-triangles still above ``target`` (empty unless asked),
         moved ``seed_inset`` into the solid along their face's normal (where new spheres go).
+    paths : (keys, offsets) the quadtree keys of those sub-triangles per triangle, sorted
+        (empty unless asked); ``restrict_paths`` selects triangles for the next call.
     """
     if len(R) == 0:
         raise ValueError("no spheres to certify")
     if bvh is None:
         bvh = BVH.of_spheres(C, R)
     faces = np.ascontiguousarray(faces, dtype=np.int64)
+    if prev is None:
+        prev = (np.empty(0, np.int64), np.zeros(len(faces) + 1, np.int64))
+    pk, po = prev
+    if len(po) != len(faces) + 1:
+        raise ValueError(f"prev holds {len(po) - 1} triangles, faces {len(faces)}")
     # one pass keeps up to SEED_BUF seeds per triangle; only triangles with more are walked again
-    buf = np.empty((len(faces), SEED_BUF if want_seeds else 0, 3))
-    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size), buf, float(seed_inset))
+    nb = SEED_BUF if want_seeds else 0
+    buf = np.empty((len(faces), nb, 3))
+    pbuf = np.empty((len(faces), nb), np.int64)
+    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size), buf, float(seed_inset),
+                                pk, po, pbuf)
     seeds = np.empty((0, 3))
+    paths = (np.empty(0, np.int64), np.zeros(len(faces) + 1, np.int64))
     if want_seeds and nbad.sum() > 0:
+        off = np.concatenate([[0], np.cumsum(nbad)]).astype(np.int64)
+        keys = np.empty(off[-1], np.int64)
         fits = (nbad > 0) & (nbad <= SEED_BUF)
-        kept = buf[fits][np.arange(SEED_BUF)[None, :] < nbad[fits][:, None]]  # (k, 3), triangle order
+        col = np.arange(SEED_BUF)[None, :] < nbad[fits][:, None]
+        kept = buf[fits][col]  # (k, 3), triangle order
+        keys[(off[:-1][fits][:, None] + np.arange(SEED_BUF)[None, :])[col]] = pbuf[fits][col]
         more = np.flatnonzero(nbad > SEED_BUF)
         seeds = kept
         if len(more):
             offsets = np.concatenate([[0], np.cumsum(nbad[more])]).astype(np.int64)
             rest = np.empty((offsets[-1], 3))
-            _emit_bad(V, F, faces[more], offsets, C, R, *bvh.arrays, float(target), float(min_size), rest, float(seed_inset))
+            rest_keys = np.empty(offsets[-1], np.int64)
+            _emit_bad(V, F, faces[more], offsets, C, R, *bvh.arrays, float(target), float(min_size), rest, float(seed_inset),
+                      *restrict_paths((pk, po), more), rest_keys)
             seeds = np.concatenate([kept, rest])
-    return ub, lb, seeds
+            _copy_segments(rest_keys, offsets[:-1], keys, off[more], nbad[more])
+        _sort_segments(keys, off)
+        paths = (keys, off)
+    return ub, lb, seeds, paths
+
+
+@njit(cache=True, parallel=True)
+def _sort_segments(keys, off):
+    """Sort ``keys[off[t]:off[t + 1]]`` for every t, in place (no temporaries of the whole array)."""
+    for t in prange(off.shape[0] - 1):
+        keys[off[t]:off[t + 1]].sort()
+
+
+def restrict_paths(paths, keep):
+    """``paths`` (keys, offsets) of ``certify_faces`` for the triangles at indices ``keep`` only."""
+    keys, off = paths
+    keep = np.asarray(keep, np.int64)
+    new_off = np.concatenate([[0], np.cumsum(off[keep + 1] - off[keep])]).astype(np.int64)
+    out = np.empty(new_off[-1], np.int64)
+    _copy_segments(keys, off[keep], out, new_off[:-1], np.diff(new_off))
+    return out, new_off
+
+
+@njit(cache=True)
+def _copy_segments(src, src_start, dst, dst_start, length):
+    """``dst[dst_start[i]:dst_start[i] + length[i]] = src[src_start[i]:...]`` for every i."""
+    for i in range(length.shape[0]):
+        for k in range(length[i]):
+            dst[dst_start[i] + k] = src[src_start[i] + k]
 
 
 def tight_bound(V, F, C, R, rel_tol: float = 0.05, bvh: BVH | None = None, known: float = np.inf):

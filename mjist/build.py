@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from .bound import certify_faces, surface_gaps, tight_bound
+from .bound import certify_faces, restrict_paths, surface_gaps, tight_bound
 from .bvh import BVH
 from .hierarchy import build_hierarchy
 from .mesh import load_mesh
@@ -181,6 +181,7 @@ def build(
     certified = np.inf  # best bound so far (stays valid as spheres are added)
     face_ub = np.full(len(m.faces), np.inf)  # per-triangle certificates, also valid from then on
     open_faces = np.arange(len(m.faces), dtype=np.int64)  # triangles not yet below the target
+    open_paths = None  # their sub-triangles still above it (bound.certify_faces)
     for level in range(1, MAX_LEVELS + 1):
         if len(R) >= max_leaves:
             break
@@ -189,11 +190,14 @@ def build(
         tc = time.perf_counter()
         sph_bvh = BVH.of_spheres(C, R) if len(R) else None
         if len(R):
-            ub_f, _, seeds = certify_faces(
-                m.vertices, m.faces, open_faces, C, R, target, h, want_seeds=True, bvh=sph_bvh, seed_inset=SEED_INSET * h
+            ub_f, _, seeds, paths = certify_faces(
+                m.vertices, m.faces, open_faces, C, R, target, h, want_seeds=True, bvh=sph_bvh, seed_inset=SEED_INSET * h,
+                prev=open_paths,
             )
             face_ub[open_faces] = ub_f
-            open_faces = open_faces[ub_f > target]
+            still = np.flatnonzero(ub_f > target)
+            open_faces = open_faces[still]
+            open_paths = restrict_paths(paths, still)  # next level walks only what is still open
             ub = float(face_ub.max())
         else:
             ub, seeds = np.inf, m.vertices[m.faces].mean(axis=1)

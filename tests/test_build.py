@@ -303,3 +303,38 @@ def test_sparse_drops_redundant_spheres_not_the_bound():
     for bad in ({"leaves": 100}, {"max_error": 0.05, "min_coverage": 0.8}):
         with pytest.raises(ValueError, match="sparse"):
             mjist.build(mesh, sparse=True, **bad)
+
+
+def test_certificate_skips_only_what_an_earlier_walk_certified():
+    """certify_faces(prev=...) walks only the sub-triangles still open with fewer spheres: its
+    per-triangle bounds must still hold on dense random points of every triangle (the builder
+    re-certifies level by level this way), and it opens no more than a full walk."""
+    from mjist.bound import _gaps, certify_faces, restrict_paths
+    from mjist.mesh import load_mesh
+
+    mesh = torus()
+    m = load_mesh(mesh)
+    t = built("torus_sparse")[1]
+    C, R = t.leaf_centers, t.leaf_radii
+    order = np.argsort(-R, kind="stable")
+    V, F, target = m.vertices, m.faces, 0.02
+    rng = np.random.default_rng(3)
+    for frac in (0.3, 0.7):
+        k = int(frac * len(R))
+        faces = np.arange(len(F))
+        ub0, _, _, p0 = certify_faces(V, F, faces, C[order[:k]], R[order[:k]], target, 0.014, want_seeds=True)
+        still = np.flatnonzero(ub0 > target)
+        assert len(still) > 0
+        ubA, _, sA, _ = certify_faces(V, F, faces[still], C, R, target, 0.007, want_seeds=True, prev=restrict_paths(p0, still))
+        ubB, _, sB, _ = certify_faces(V, F, faces[still], C, R, target, 0.007, want_seeds=True)
+        assert len(sA) <= len(sB)
+        fs = faces[still]
+        u, v = rng.random((len(fs), 400)), rng.random((len(fs), 400))
+        flip = u + v > 1
+        u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+        a, b, c = V[F[fs, 0]], V[F[fs, 1]], V[F[fs, 2]]
+        P = a[:, None] + u[..., None] * (b - a)[:, None] + v[..., None] * (c - a)[:, None]
+        g = _gaps(np.ascontiguousarray(P.reshape(-1, 3)), C, R, *BVH.of_spheres(C, R).arrays).reshape(len(fs), -1).max(1)
+        assert np.all(g <= ubA + 1e-12)
+    with pytest.raises(ValueError, match="prev"):
+        certify_faces(V, F, faces[:3], C, R, target, 0.01, prev=restrict_paths(p0, still))
