@@ -198,6 +198,7 @@ def build(
             still = np.flatnonzero(ub_f > target)
             open_faces = open_faces[still]
             open_paths = restrict_paths(paths, still)  # next level walks only what is still open
+            del paths  # all triangles' keys: only the open ones' are needed
             ub = float(face_ub.max())
         else:
             ub, seeds = np.inf, m.vertices[m.faces].mean(axis=1)
