@@ -16,10 +16,11 @@ Every triangle is split recursively into four; for a sub-triangle T with vertice
   nearest to the vertices.
 
 The smaller of the two is T's bound ``UB(T)``; a sub-triangle is split again until
-``UB(T) <= target`` or it is smaller than ``min_size``. Across the builder's lattice levels (same target,
-more spheres, smaller ``min_size``) each triangle's split is the same fixed quadtree, so a
-level walks only the sub-triangles that were still above the target at the previous one: the
-rest was certified then, and gaps only shrink as spheres are added (``certify_faces(prev=)``). ε is the maximum ``UB`` over
+``UB(T) <= target`` or it is smaller than ``min_size``. Across the builder's lattice
+levels (same target, more spheres, smaller ``min_size``) each triangle's split is the same
+fixed quadtree, so a level walks only the sub-triangles that were still above the target at
+the previous one: the rest was certified then, and gaps only shrink as spheres are added
+(``certify_faces(prev=)``). ε is the maximum ``UB`` over
 the final sub-triangles, and ``max_i g(v_i)`` over all evaluated vertices is a lower
 bound of the true Hausdorff distance (reported so the bound's tightness is visible).
 """
