@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit, prange
 
 from .bvh import BVH, RAY_DIRS, STACK, inside_near, sphere_gap, tri_closest
+from .voxelize import KEY_BITS, KEY_MASK
 
 
 @njit(cache=True)
@@ -60,7 +61,6 @@ def _heap_pop(hk, hi, n):
 
 
 NO_SEEDS = (np.empty((0, 3), np.float32), np.empty(0, np.int64), np.zeros(1, np.int64), 1.0, 0.0)  # greedy_pack without the cover test
-_CELL_MAX = (1 << 21) - 1
 
 
 def seed_grid(seeds, origin, g, reach):
@@ -75,8 +75,8 @@ def seed_grid(seeds, origin, g, reach):
     if len(seeds) == 0:
         return NO_SEEDS
     k = np.zeros(len(seeds), np.int64)
-    for d, shift in enumerate((42, 21, 0)):  # one axis at a time: no (n, 3) temporaries
-        k |= np.clip(np.floor((seeds[:, d] - origin[d]) / g), 0, _CELL_MAX).astype(np.int64) << shift
+    for d, shift in enumerate((2 * KEY_BITS, KEY_BITS, 0)):  # one axis at a time: no (n, 3) temporaries
+        k |= np.clip(np.floor((seeds[:, d] - origin[d]) / g), 0, KEY_MASK).astype(np.int64) << shift
     o = np.argsort(k, kind="stable")
     k = k[o]
     first = np.flatnonzero(np.concatenate([[True], k[1:] != k[:-1]]))
@@ -95,15 +95,15 @@ def _cover_seeds(cx, cy, cz, reach, S, ckeys, cstart, cend, origin, g):
     """
     hit = False
     lo0 = max(int(np.floor((cx - reach - origin[0]) / g)), 0)
-    hi0 = min(int(np.floor((cx + reach - origin[0]) / g)), _CELL_MAX)
+    hi0 = min(int(np.floor((cx + reach - origin[0]) / g)), KEY_MASK)
     lo1 = max(int(np.floor((cy - reach - origin[1]) / g)), 0)
-    hi1 = min(int(np.floor((cy + reach - origin[1]) / g)), _CELL_MAX)
+    hi1 = min(int(np.floor((cy + reach - origin[1]) / g)), KEY_MASK)
     lo2 = max(int(np.floor((cz - reach - origin[2]) / g)), 0)
-    hi2 = min(int(np.floor((cz + reach - origin[2]) / g)), _CELL_MAX)
+    hi2 = min(int(np.floor((cz + reach - origin[2]) / g)), KEY_MASK)
     r2 = reach * reach
     for a in range(lo0, hi0 + 1):
         for b in range(lo1, hi1 + 1):
-            base = (a << 42) | (b << 21)
+            base = (a << (2 * KEY_BITS)) | (b << KEY_BITS)
             u0 = np.searchsorted(ckeys, base | lo2)
             u1 = np.searchsorted(ckeys, base | hi2, side="right")
             for u in range(u0, u1):
@@ -192,7 +192,7 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart,
         for a in range(max(lo0, 0), hi0 + 1):
             for b in range(max(lo1, 0), hi1 + 1):
                 # the keys of one (a, b) row are contiguous in sorted order
-                base = (a << 42) | (b << 21)
+                base = (a << (2 * KEY_BITS)) | (b << KEY_BITS)
                 j0 = np.searchsorted(keys, base | max(lo2, 0))
                 j1 = np.searchsorted(keys, base | hi2, side="right")
                 for j in range(j0, j1):
