@@ -16,7 +16,8 @@ Every triangle is split recursively into four; for a sub-triangle T with vertice
   nearest to the vertices.
 
 The smaller of the two is T's bound ``UB(T)``; a sub-triangle is split again until
-``UB(T) <= target`` or it is smaller than ``min_size``. Across the builder's lattice
+``UB(T) <= target`` or it is smaller than ``min_size`` (or than ``bad_size`` once a vertex
+gap above the target proves it open: splitting it further would only place its seeds finer). Across the builder's lattice
 levels (same target, more spheres, smaller ``min_size``) each triangle's split is the same
 fixed quadtree, so a level walks only the sub-triangles that were still above the target at
 the previous one: the rest was certified then, and gaps only shrink as spheres are added
@@ -94,8 +95,8 @@ def _sphere_ub(P, sp, C, R, j):
 
 
 @njit(cache=True)
-def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, target, min_size, stack, seeds, inset,
-                      prev, paths):
+def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, target, min_size, bad_size, stack, seeds,
+                      inset, prev, paths):
     """Bound for triangle ``F[f]``. Returns (ub, lb, n_bad); writes the first ``len(seeds)`` bad
     centroids to ``seeds``, moved ``inset`` into the solid along the face normal, and their
     quadtree keys to ``paths``.
@@ -152,7 +153,9 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
         cov = _cov(ax, ay, az, bx, by, bz, cx, cy, cz)
         lb_max = max(lb_max, g0, g1, g2)
         ub = _sub_ub(P, G, J, sp, cov, UBP[sp], C, R)
-        if ub <= target or cov <= min_size or sp + 4 > SUB_STACK:
+        # a vertex gap above the target proves the sub-triangle bad: splitting it below bad_size only
+        # places its seeds finer; the uncertain ones (bound above, gaps below) go on to min_size
+        if ub <= target or cov <= min_size or (cov <= bad_size and max(g0, g1, g2) > target) or sp + 4 > SUB_STACK:
             ub_max = max(ub_max, ub)
             if ub > target:
                 if nbad < seeds.shape[0]:
@@ -210,7 +213,7 @@ def _sub_ub(P, G, J, sp, cov, ub_parent, C, R):
 
 
 @njit(cache=True, parallel=True)
-def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size, buf, inset,
+def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size, bad_size, buf, inset,
                  prev, prev_off, pbuf):
     """Every triangle's bound; its first ``buf.shape[1]`` bad centroids go to ``buf[t]``, their
     keys to ``pbuf[t]``; ``prev[prev_off[t]:prev_off[t + 1]]`` are its earlier bad keys."""
@@ -222,19 +225,19 @@ def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, ta
         stack = np.empty(STACK, np.int64)
         ub[t], lb[t], nbad[t] = _certify_triangle(
             V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, stack, buf[t], inset, prev[prev_off[t]:prev_off[t + 1]], pbuf[t],
+            target, min_size, bad_size, stack, buf[t], inset, prev[prev_off[t]:prev_off[t + 1]], pbuf[t],
         )
     return ub, lb, nbad
 
 
 @njit(cache=True, parallel=True)
-def _emit_bad(V, F, faces, offsets, C, R, lo, hi, left, right, start, count, order, target, min_size, seeds, inset,
-              prev, prev_off, paths):
+def _emit_bad(V, F, faces, offsets, C, R, lo, hi, left, right, start, count, order, target, min_size, bad_size, seeds,
+              inset, prev, prev_off, paths):
     for t in prange(faces.shape[0]):
         stack = np.empty(STACK, np.int64)
         _certify_triangle(
             V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, stack, seeds[offsets[t]:offsets[t + 1]], inset,
+            target, min_size, bad_size, stack, seeds[offsets[t]:offsets[t + 1]], inset,
             prev[prev_off[t]:prev_off[t + 1]], paths[offsets[t]:offsets[t + 1]],
         )
 
@@ -262,7 +265,7 @@ def certify(V, F, C, R, target: float, min_size: float, want_seeds: bool = False
 
 def certify_faces(
     V, F, faces, C, R, target: float, min_size: float, want_seeds: bool = False, bvh: BVH | None = None,
-    seed_inset: float = 0.0, prev=None,
+    seed_inset: float = 0.0, prev=None, bad_size: float | None = None,
 ):
     """``certify`` on the triangles ``faces`` only, per triangle.
 
@@ -272,6 +275,9 @@ def certify_faces(
 
     Parameters
     ----------
+    bad_size : float, optional
+        Split a sub-triangle with a vertex gap above ``target`` (open for certain) only down
+        to this covering radius; the uncertain ones go on to ``min_size``. Default ``min_size``.
     prev : (keys, offsets), optional
         Per triangle of ``faces``, the sorted quadtree keys of its sub-triangles above
         ``target`` in an earlier call with the same ``target`` and ``min_size`` no smaller
@@ -300,7 +306,8 @@ def certify_faces(
     nb = SEED_BUF if want_seeds else 0
     buf = np.empty((len(faces), nb, 3))
     pbuf = np.empty((len(faces), nb), np.int64)
-    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size), buf, float(seed_inset),
+    bad_size = float(min_size if bad_size is None else max(bad_size, min_size))
+    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size), bad_size, buf, float(seed_inset),
                                 pk, po, pbuf)
     seeds = np.empty((0, 3))
     paths = (np.empty(0, np.int64), np.zeros(len(faces) + 1, np.int64))
@@ -317,7 +324,7 @@ def certify_faces(
             offsets = np.concatenate([[0], np.cumsum(nbad[more])]).astype(np.int64)
             rest = np.empty((offsets[-1], 3))
             rest_keys = np.empty(offsets[-1], np.int64)
-            _emit_bad(V, F, faces[more], offsets, C, R, *bvh.arrays, float(target), float(min_size), rest, float(seed_inset),
+            _emit_bad(V, F, faces[more], offsets, C, R, *bvh.arrays, float(target), float(min_size), bad_size, rest, float(seed_inset),
                       *restrict_paths((pk, po), more), rest_keys)
             seeds = np.concatenate([kept, rest])
             _copy_segments(rest_keys, offsets[:-1], keys, off[more], nbad[more])
@@ -364,12 +371,12 @@ def tight_bound(V, F, C, R, rel_tol: float = 0.05, bvh: BVH | None = None, known
     ub, lb, _ = certify(V, F, C, R, target=np.inf, min_size=np.inf, bvh=bvh)
     best = min(ub, known)
     for _ in range(6):
+        if best <= lb * (1.0 + rel_tol) + 1e-12 * scale:  # already tight (often: the vertices' own gaps)
+            break
         target = max(lb * (1.0 + rel_tol), 1e-9 * scale)
         ub, lb2, _ = certify(V, F, C, R, target=target, min_size=target * rel_tol * 0.5, bvh=bvh)
         lb = max(lb, lb2)
         best = min(best, ub)
-        if best <= lb * (1.0 + rel_tol) + 1e-12 * scale:
-            break
     return best, lb
 
 

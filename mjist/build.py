@@ -15,6 +15,8 @@ from .packing import NO_SEEDS, band_free_distance, greedy_pack, seed_grid
 from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
+# Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
+BUILDER_VERSION = 2
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
 # Candidate band of each lattice level: cubes of half-width BAND_WIDTH around the centroids of the
@@ -28,6 +30,12 @@ SEED_INSET = 0.5  # in lattice spacings
 # a band of lattice-sized spheres covers each seed many times over. Finer levels only fill sharp
 # features, where the flat-surface reach of the test is wrong, so they keep every sphere.
 COVER_MIN_H = 0.25
+# Certificate resolution of each level: a sub-triangle with a vertex gap above the target is
+# certainly open and is split only down to the lattice spacing (finer seeds add no band points);
+# one whose bound is above the target but every vertex gap below is uncertain and is split down to
+# CERT_MIN_SIZE spacings, so that the loose bound of a coarse sub-triangle does not put spheres
+# where the gap is already small. CBCT mandible: 24 % fewer leaves, builds 10-20 % faster.
+CERT_MIN_SIZE = 0.25  # in lattice spacings
 FILL_BAND_WIDTH = 2.0  # around interior gap points (min_coverage): the gaps need the wider choice
 MAX_BAND_POINTS = 120_000_000  # band keys of one level (8 bytes each, ~3x that at the dilation's peak)
 BAND_CHUNK = 4_000_000  # band points decoded and evaluated at a time
@@ -191,8 +199,8 @@ def build(
         sph_bvh = BVH.of_spheres(C, R) if len(R) else None
         if len(R):
             ub_f, _, seeds, paths = certify_faces(
-                m.vertices, m.faces, open_faces, C, R, target, h, want_seeds=True, bvh=sph_bvh, seed_inset=SEED_INSET * h,
-                prev=open_paths,
+                m.vertices, m.faces, open_faces, C, R, target, CERT_MIN_SIZE * h, want_seeds=True, bvh=sph_bvh,
+                seed_inset=SEED_INSET * h, prev=open_paths, bad_size=h,
             )
             face_ub[open_faces] = ub_f
             still = np.flatnonzero(ub_f > target)
@@ -317,6 +325,7 @@ def build(
                 "min_coverage": None if min_coverage is None else float(min_coverage), "sparse": bool(sparse)},
         timings=timings,
         info={
+            "builder_version": BUILDER_VERSION,
             "mesh_vertices": int(len(m.vertices)),
             "mesh_faces": int(len(m.faces)),
             "mesh_shells": int(m.shells),

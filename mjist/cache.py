@@ -1,9 +1,9 @@
 """On-disk cache of built trees, keyed by mesh content and build parameters.
 
 A scene's second start loads its trees instead of rebuilding them. The key hashes the
-vertex and face bytes (as MuJoCo compiled them), the build parameters and the tree format
-version, so any change of mesh, scale or parameters builds a new tree; a corrupt or
-foreign entry is rebuilt and overwritten.
+vertex and face bytes (as MuJoCo compiled them), the build parameters, the builder version
+and the tree format version, so any change of mesh, scale, parameters or builder builds a
+new tree; a corrupt or foreign entry is rebuilt and overwritten.
 """
 from __future__ import annotations
 
@@ -28,12 +28,14 @@ def cache_dir(path=None) -> str:
 
 
 def tree_key(vertices, faces, params: dict) -> str:
-    """Content key of a tree: mesh bytes + build parameters + format version."""
+    """Content key of a tree: mesh bytes + build parameters + builder and format versions."""
+    from .build import BUILDER_VERSION
+
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(vertices, np.float64).tobytes())
     h.update(np.ascontiguousarray(faces, np.int64).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())
-    h.update(f"format{FORMAT_VERSION}".encode())
+    h.update(f"format{FORMAT_VERSION}builder{BUILDER_VERSION}".encode())
     return h.hexdigest()[:40]
 
 

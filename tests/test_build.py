@@ -338,3 +338,33 @@ def test_certificate_skips_only_what_an_earlier_walk_certified():
         assert np.all(g <= ubA + 1e-12)
     with pytest.raises(ValueError, match="prev"):
         certify_faces(V, F, faces[:3], C, R, target, 0.01, prev=restrict_paths(p0, still))
+
+
+def test_certificate_stops_splitting_certainly_open_parts_at_bad_size():
+    """certify_faces(bad_size=) splits a sub-triangle with a vertex gap above the target only down
+    to bad_size (it is open whatever its children say) and the uncertain ones down to min_size:
+    the same triangles certified with the same bounds, per-triangle bounds still holding on dense
+    random points, and fewer seeds (the builder's band follows them)."""
+    from mjist.bound import _gaps, certify_faces
+    from mjist.mesh import load_mesh
+
+    m = load_mesh(torus())
+    t = built("torus_sparse")[1]
+    order = np.argsort(-t.leaf_radii, kind="stable")[: len(t.leaf_radii) // 2]
+    C, R = t.leaf_centers[order], t.leaf_radii[order]
+    V, F, target = m.vertices, m.faces, 0.02
+    faces = np.arange(len(F))
+    ub_f, _, s_f, _ = certify_faces(V, F, faces, C, R, target, 0.002, want_seeds=True)
+    ub_b, _, s_b, _ = certify_faces(V, F, faces, C, R, target, 0.002, want_seeds=True, bad_size=0.008)
+    ok = ub_f <= target
+    assert 0 < ok.sum() < len(F)
+    assert np.array_equal(ub_b <= target, ok) and np.array_equal(ub_b[ok], ub_f[ok])
+    assert len(s_b) < 0.7 * len(s_f)
+    rng = np.random.default_rng(5)
+    u, v = rng.random((len(F), 400)), rng.random((len(F), 400))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    P = a[:, None] + u[..., None] * (b - a)[:, None] + v[..., None] * (c - a)[:, None]
+    g = _gaps(np.ascontiguousarray(P.reshape(-1, 3)), C, R, *BVH.of_spheres(C, R).arrays).reshape(len(F), -1).max(1)
+    assert np.all(g <= ub_b + 1e-12)
