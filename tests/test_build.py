@@ -114,6 +114,27 @@ def test_hierarchy_is_wrapped_and_consistent(name):
     assert tree.depth == int(tree.depth_of.max())
 
 
+def test_node_wrap_is_near_minimal():
+    """The node sphere of many balls (core-set Bădoiu–Clarkson) encloses them all and is within
+    1 % of the minimal enclosing ball, here found by a long plain Bădoiu–Clarkson run."""
+    from mjist.hierarchy import _enclosing
+
+    rng = np.random.default_rng(11)
+    for n, spread in ((40, 1.0), (3000, 1.0), (3000, 0.05)):
+        C = rng.normal(size=(n, 3)) * np.array([1.0, 0.5, spread])
+        R = rng.uniform(0.01, 0.2, n)
+        c, r = _enclosing(C, R, np.arange(n), C.mean(0))
+        assert (np.linalg.norm(C - c, axis=1) + R <= r).all()
+        x, best = C.mean(0), np.inf
+        for t in range(20000):
+            d = np.linalg.norm(C - x, axis=1) + R
+            best = min(best, d.max())
+            i = int(np.argmax(d))
+            v = C[i] - x
+            x = x + (C[i] + R[i] * v / np.linalg.norm(v) - x) / (t + 2.0)
+        assert r <= 1.01 * best
+
+
 @pytest.mark.parametrize(
     "name,volume",
     [("sphere", 4 / 3 * np.pi), ("box", 6.0), ("torus", 2 * np.pi**2 * 1.0 * 0.35**2)],
