@@ -288,7 +288,8 @@ def certify_faces(
     -------
     ub, lb : (len(faces),) per-triangle bound and lower bound.
     seeds : (k, 3) centroids of the sub-triangles still above ``target`` (empty unless asked),
-        moved ``seed_inset`` into the solid along their face's normal (where new spheres go).
+        moved ``seed_inset`` into the solid along their face's normal (where new spheres go);
+        per triangle, in the segments of ``paths``' offsets.
     paths : (keys, offsets) the quadtree keys of those sub-triangles per triangle, sorted
         (empty unless asked); ``restrict_paths`` selects triangles for the next call.
     """
@@ -316,17 +317,18 @@ def certify_faces(
         keys = np.empty(off[-1], np.int64)
         fits = (nbad > 0) & (nbad <= SEED_BUF)
         col = np.arange(SEED_BUF)[None, :] < nbad[fits][:, None]
-        kept = buf[fits][col]  # (k, 3), triangle order
-        keys[(off[:-1][fits][:, None] + np.arange(SEED_BUF)[None, :])[col]] = pbuf[fits][col]
+        at = (off[:-1][fits][:, None] + np.arange(SEED_BUF)[None, :])[col]
+        seeds = np.empty((off[-1], 3))
+        seeds[at] = buf[fits][col]
+        keys[at] = pbuf[fits][col]
         more = np.flatnonzero(nbad > SEED_BUF)
-        seeds = kept
         if len(more):
             offsets = np.concatenate([[0], np.cumsum(nbad[more])]).astype(np.int64)
             rest = np.empty((offsets[-1], 3))
             rest_keys = np.empty(offsets[-1], np.int64)
             _emit_bad(V, F, faces[more], offsets, C, R, *bvh.arrays, float(target), float(min_size), bad_size, rest, float(seed_inset),
                       *restrict_paths((pk, po), more), rest_keys)
-            seeds = np.concatenate([kept, rest])
+            seeds[np.repeat(off[more] - offsets[:-1], nbad[more]) + np.arange(offsets[-1])] = rest
             _copy_segments(rest_keys, offsets[:-1], keys, off[more], nbad[more])
         _sort_segments(keys, off)
         paths = (keys, off)

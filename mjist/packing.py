@@ -213,21 +213,21 @@ def _band_free(P, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, s
     for i in prange(n):
         stack = np.empty(STACK, np.int64)
         # surface first: a band point lies within a few spacings of it, so the triangle search is
-        # short, and the points too near it or outside (two thirds of a band) then need no search
-        # of the (millions of) spheres; the sphere search is bounded by the surface distance.
-        # 1.8x faster than spheres first on a 38 um band of the CBCT mandible, same values.
+        # short, and the points too near it (a third of a band) need nothing else; the sphere
+        # search is bounded by the surface distance; the inside test (a ray cast, see
+        # bvh.inside_near) last, for the candidates left. 1.8x faster than spheres first.
         d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, np.inf)
         d = np.sqrt(d2)
         if tf < 0 or d < r_min:
             f[i] = -1.0
             continue
-        if not inside_near(P[i], qx, qy, qz, tf, interior, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
-            f[i] = -1.0
-            continue
         g = d
         if R.shape[0] > 0:
             g, _ = sphere_gap(P[i], C, R, slo, shi, sleft, sright, sstart, scount, sorder, stack, d)
-        f[i] = g if g >= r_min else -1.0
+        if g < r_min or not inside_near(P[i], qx, qy, qz, tf, interior, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
+            f[i] = -1.0
+            continue
+        f[i] = g
     return f
 
 

@@ -5,8 +5,8 @@ Level 0 is a uniform lattice over the whole bounding box; level ``l`` has spacin
 gap to the spheres is still too large (adaptive refinement: small ε without a billion
 voxels). Lattices nest (a level-l point is a level-(l+1) point), all share one origin.
 
-Inside/outside comes from parity ray casting through a triangle BVH with retries when a
-ray grazes an edge or vertex; the distance from the BVH closest point.
+Inside/outside comes from the winding number by ray casting through a triangle BVH (signed
+crossings, retried when a ray grazes an edge or vertex); the distance from the BVH closest point.
 """
 from __future__ import annotations
 

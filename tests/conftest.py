@@ -29,3 +29,18 @@ def gaps_to_union(points, centers, radii, chunk=2048):
         d = np.sqrt(((p[:, None, :] - centers[None, :, :]) ** 2).sum(-1)) - radii[None, :]
         out[a:a + chunk] = np.maximum(d.min(axis=1), 0.0)
     return out
+
+
+def winding_numbers(points, vertices, faces):
+    """Generalized winding number of each point (sum of triangle solid angles / 4 pi,
+    Van Oosterom–Strackee): 1 inside a closed outward-wound surface, 0 outside, whatever its
+    self-intersections. Independent of the ray casting under test; O(points x faces)."""
+    T = np.asarray(vertices, float)[np.asarray(faces)]
+    out = np.empty(len(points))
+    for i, p in enumerate(np.asarray(points, float)):
+        a, b, c = T[:, 0] - p, T[:, 1] - p, T[:, 2] - p
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        num = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb
+        out[i] = np.arctan2(num, den).sum() / (2.0 * np.pi)
+    return out
