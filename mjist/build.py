@@ -37,13 +37,15 @@ COVER_MIN_H = 0.25
 # CERT_MIN_SIZE spacings, so that the loose bound of a coarse sub-triangle does not put spheres
 # where the gap is already small. CBCT mandible: 24 % fewer leaves, builds 10-20 % faster.
 CERT_MIN_SIZE = 0.25  # in lattice spacings
-# A triangle whose certified gap has not shrunk by STALL_GAIN over two levels, on a lattice finer
-# than STALL_H times the target, is not going to close: no solid lies behind it that a sphere could
-# fill (the fin of a self-intersecting surface, whose two sides cross: CBCT maxilla, 0.63 mm).
-# Refinement stops there (its certified gap stays in ε); without this, such a fin drove the lattice
-# down to 0.3 um (13 levels, 440 s, at max_error 0.4 mm).
+# A triangle whose certified gap has not shrunk by STALL_GAIN over STALL_LEVELS levels, on a
+# lattice finer than STALL_H times the target, is not going to close: no solid lies behind it that
+# a sphere could fill (the fin of a self-intersecting surface, whose two sides cross: CBCT maxilla,
+# 0.63 mm). Refinement stops there (its certified gap stays in ε); without this, such a fin drove
+# the lattice down to 0.3 um (13 levels, 440 s, at max_error 0.4 mm). Two levels at a quarter of
+# the target gave up on thin plates that a finer lattice still fills (maxilla at 1 mm: 1.09 mm).
 STALL_GAIN = 0.01
-STALL_H = 0.25
+STALL_LEVELS = 3
+STALL_H = 1.0 / 16.0
 FILL_BAND_WIDTH = 2.0  # around interior gap points (min_coverage): the gaps need the wider choice
 MAX_BAND_POINTS = 120_000_000  # band keys of one level (8 bytes each, ~3x that at the dilation's peak)
 BAND_CHUNK = 4_000_000  # band points decoded and evaluated at a time
@@ -198,7 +200,7 @@ def build(
     face_ub = np.full(len(m.faces), np.inf)  # per-triangle certificates, also valid from then on
     open_faces = np.arange(len(m.faces), dtype=np.int64)  # triangles not yet below the target
     open_paths = None  # their sub-triangles still above it (bound.certify_faces)
-    ub_before = [np.full(len(m.faces), np.inf)] * 2  # face_ub one and two levels back
+    ub_before = [np.full(len(m.faces), np.inf)] * STALL_LEVELS  # face_ub 1..STALL_LEVELS levels back
     stalled = np.empty(0, np.int64)  # triangles given up on (see STALL_GAIN)
     for level in range(1, MAX_LEVELS + 1):
         if len(R) >= max_leaves:
@@ -213,9 +215,9 @@ def build(
                 seed_inset=SEED_INSET * h, prev=open_paths, bad_size=h,
             )
             face_ub[open_faces] = ub_f
-            stuck = (ub_f > target) & (ub_f > (1.0 - STALL_GAIN) * ub_before[1][open_faces]) & (h <= STALL_H * target)
+            stuck = (ub_f > target) & (ub_f > (1.0 - STALL_GAIN) * ub_before[-1][open_faces]) & (h <= STALL_H * target)
             stalled = np.concatenate([stalled, open_faces[stuck]])
-            ub_before = [face_ub.copy(), ub_before[0]]
+            ub_before = [face_ub.copy()] + ub_before[:-1]
             still = np.flatnonzero((ub_f > target) & ~stuck)
             if stuck.any():  # no more seeds there
                 seeds = seeds[np.repeat(~stuck, np.diff(paths[1]))]

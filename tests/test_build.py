@@ -270,7 +270,7 @@ def test_real_maxilla_self_intersection_no_sphere_outside():
     """The CBCT maxilla (three shells) has a fin whose two sides cross near (54, -71, 33) mm: a
     face's inner side is outside there. No leaf may sit outside (the face-normal rule alone put
     29 spheres of up to 0.7 mm there); the triangles that no sphere can reach stop refinement
-    (9 lattice levels, not 13) and stay in ε, which remains a true bound, with a warning."""
+    (10 lattice levels, not 13) and stay in ε, which remains a true bound, with a warning."""
     path = shared_path("jaw", "maxilla.obj")
     m = mjist.load_mesh(path)
     assert m.shells == 3
