@@ -17,7 +17,7 @@ from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
 # Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
-BUILDER_VERSION = 3
+BUILDER_VERSION = 4
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
 # Candidate band of each lattice level: cubes of half-width BAND_WIDTH around the centroids of the
@@ -323,11 +323,10 @@ def build(
         warnings.warn(
             f"certified error bound {eps:.4g} exceeds max_error={max_error:.4g}: {len(stalled)} triangles "
             f"(worst {worst}, gap <= {face_ub[worst]:.4g}, near {np.round(m.vertices[m.faces[worst]].mean(axis=0), 6).tolist()}) "
-            "stay open however fine the lattice: parts of them have no solid behind them (a self-intersecting "
-            "surface, e.g. a fin whose two sides cross) or none thicker than the lattice. ε counts them, so it "
-            "stays a true bound for this mesh; "
-            "remove the self-intersections (e.g. pymeshfix, or MeshLab's 'select self intersecting faces') "
-            "to reach max_error",
+            "stay open however fine the lattice: the solid beside them is thinner than the lattice reaches "
+            "(a fin or plate of a segmentation, often where its two sides cross). ε counts them, so it stays a "
+            "true bound for this mesh; thicken or remove those fins (e.g. MeshLab's 'select self intersecting "
+            "faces', pymeshfix) to reach max_error",
             RuntimeWarning,
             stacklevel=2,
         )
@@ -366,6 +365,7 @@ def build(
             "points_evaluated": int(vox.points_evaluated),
             "repairs": list(m.repairs),
             "mean_gap": mean_gap,
+            "crossed_faces": int(vox.crossed_faces),
             "stalled_faces": int(len(stalled)),
             "stalled_area": float(trimesh.triangles.area(triangles=m.vertices[m.faces[stalled]]).sum()) if len(stalled) else 0.0,
             "levels": level_log,

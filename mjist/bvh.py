@@ -15,6 +15,7 @@ from numba import njit, prange
 
 LEAF_SIZE = 4
 STACK = 128  # depth bound: median splits give depth ~log2(n/LEAF_SIZE) < 40
+NO_SIDE = -(1 << 40)  # a face whose sides need a ray per point (selfintersect.face_sides)
 
 
 @njit(cache=True)
@@ -284,7 +285,7 @@ def _ray_box(o, inv, lo, hi, node):
 
 
 @njit(cache=True)
-def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol):
+def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol, skip=-1):
     """Winding number of ``o`` from the triangle crossings of the ray ``o + t d`` (t > 0).
 
     Möller–Trumbore; a crossing counts +1 where the ray leaves through a triangle's outer
@@ -295,6 +296,7 @@ def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol
     Returns ``(winding, ambiguous)``; ``ambiguous`` is True when some hit lies within
     ``tol`` (barycentric) of an edge or vertex, or the ray is nearly in a triangle's plane,
     or the origin is on a triangle: the caller then retries with another direction.
+    Triangle ``skip`` is ignored (a ray cast from a point of that face).
     """
     inv = np.empty(3)
     for k in range(3):
@@ -317,6 +319,8 @@ def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol
             continue
         for i in range(start[node], start[node] + count[node]):
             f = order[i]
+            if f == skip:
+                continue
             a = F[f, 0]
             ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
             e1x, e1y, e1z = V[F[f, 1], 0] - ax, V[F[f, 1], 1] - ay, V[F[f, 1], 2] - az
@@ -363,44 +367,45 @@ def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol
 
 @njit(cache=True)
 def inside(p, V, F, lo, hi, left, right, start, count, order, stack, dirs):
-    """Inside test by ray-cast winding number (>= 1: shells overlapping count as a union),
-    retried along the next direction while a ray grazes."""
+    """Inside test by the ray-cast winding number, nonzero rule (shells overlapping count as a
+    union, the inverted sliver beyond a self-intersection as solid: both are enclosed by the
+    surface, so spheres there stay behind it), retried along the next direction while a ray grazes."""
     votes = 0
     for k in range(dirs.shape[0]):
         n, amb = ray_winding(p, dirs[k], V, F, lo, hi, left, right, start, count, order, stack, 1e-9)
         if not amb:
-            return n >= 1
-        votes += n >= 1
+            return n != 0
+        votes += n != 0
     # every direction grazed something (point essentially on the surface): majority vote
     return 2 * votes > dirs.shape[0]
 
 
 @njit(cache=True)
-def inside_near(p, qx, qy, qz, tf, interior, V, F, lo, hi, left, right, start, count, order, stack, dirs):
+def inside_near(p, qx, qy, qz, tf, interior, side, V, F, lo, hi, left, right, start, count, order, stack, dirs):
     """``inside`` for a point whose closest surface point ``q`` (on triangle ``tf``) is known.
 
-    When ``q`` lies inside the face, ``p - q`` is along the face normal, and on its outer side
-    ``p`` is outside: no ray is cast. The inner side decides alone only on a surface without
-    self-intersections; CBCT segmentations have some (thin plates whose two sides cross, on the
-    CBCT maxilla), where a face's inner side can be outside (winding number 0 or -1; the old
-    inner-side rule put 29 spheres of up to 0.7 mm outside the maxilla at max_error 0.4 mm).
-    So an inner side, and a closest point on an edge or vertex, are settled by the ray-cast
-    winding number: inside only where both agree, so a wrong answer can drop a point (near
-    overlapping shells), never place a sphere outside.
+    When ``q`` lies inside a face that no other face touches, ``p`` is on that face's outer
+    side (winding number ``side[tf]``) or its inner side (``side[tf] + 1``): no ray is cast
+    (see ``selfintersect``). Faces crossed by others (``side == NO_SIDE``: CBCT fins whose two
+    sides cross, overlapping shells) and closest points on an edge or vertex take the ray cast.
     """
     if interior:
-        nx, ny, nz = face_normal(V, F, tf)
-        if (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz >= 0.0:
-            return False
+        w = side[tf]
+        if w != NO_SIDE:
+            nx, ny, nz = face_normal(V, F, tf)
+            if (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz < 0.0:
+                w += 1
+            return w != 0
     return inside(p, V, F, lo, hi, left, right, start, count, order, stack, dirs)
 
 
 @njit(cache=True, parallel=True)
-def signed_distance(P, V, F, lo, hi, left, right, start, count, order, dirs):
+def signed_distance(P, V, F, side, lo, hi, left, right, start, count, order, dirs):
     """Signed distance of points ``P (n, 3)`` to a closed mesh: positive inside.
 
-    Magnitude from the BVH closest point, sign from that point's face or, at edges and
-    vertices, from the ray-cast winding number (robust retries): see ``inside_near``.
+    Magnitude from the BVH closest point, sign from that point's face (``side``: winding
+    numbers beside each face, ``selfintersect.face_sides``) or the ray-cast winding number
+    (robust retries): see ``inside_near``.
     """
     n = P.shape[0]
     out = np.empty(n)
@@ -408,7 +413,7 @@ def signed_distance(P, V, F, lo, hi, left, right, start, count, order, dirs):
         stack = np.empty(STACK, np.int64)
         d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
         d = np.sqrt(d2)
-        if inside_near(P[i], qx, qy, qz, tf, interior, V, F, lo, hi, left, right, start, count, order, stack, dirs):
+        if inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, lo, hi, left, right, start, count, order, stack, dirs):
             out[i] = d
         else:
             out[i] = -d

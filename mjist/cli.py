@@ -24,6 +24,12 @@ def _report(tree, out: str | None, mesh: str) -> str:
     ]
     if s.get("repairs"):
         lines.append("repairs     " + "; ".join(s["repairs"]))
+    if s.get("crossed_faces"):
+        lines.append(f"surface     {s['crossed_faces']} faces cross others (self-intersections, overlapping shells): "
+                     "inside is the nonzero winding number")
+    if s.get("stalled_faces"):
+        lines.append(f"open        {s['stalled_faces']} faces ({s['stalled_area']:.3g} mesh units²) beside solid thinner "
+                     "than the lattice reaches: ε counts them")
     if out:
         lines.append(f"saved       {out}")
     return "\n".join(lines)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import BVH, RAY_DIRS, STACK, inside_near, sphere_gap, tri_closest
+from .bvh import BVH, NO_SIDE, RAY_DIRS, STACK, inside_near, sphere_gap, tri_closest
 from .voxelize import KEY_BITS, KEY_MASK
 
 
@@ -207,24 +207,29 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart,
 
 
 @njit(cache=True, parallel=True)
-def _band_free(P, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, slo, shi, sleft, sright, sstart, scount, sorder, dirs, r_min):
+def _band_free(P, V, F, side, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, slo, shi, sleft, sright, sstart, scount, sorder, dirs, r_min):
     n = P.shape[0]
     f = np.empty(n)
     for i in prange(n):
         stack = np.empty(STACK, np.int64)
         # surface first: a band point lies within a few spacings of it, so the triangle search is
-        # short, and the points too near it (a third of a band) need nothing else; the sphere
-        # search is bounded by the surface distance; the inside test (a ray cast, see
-        # bvh.inside_near) last, for the candidates left. 1.8x faster than spheres first.
+        # short, and the points too near it (a third of a band) need nothing else; then the
+        # inside test where its face's side is known (no ray: bvh.inside_near), which drops the
+        # outside third; the sphere search, bounded by the surface distance; the ray-cast inside
+        # test last, for the few candidates left whose closest point is on an edge or a crossed face.
         d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, np.inf)
         d = np.sqrt(d2)
         if tf < 0 or d < r_min:
             f[i] = -1.0
             continue
+        known = interior and side[tf] != NO_SIDE
+        if known and not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
+            f[i] = -1.0
+            continue
         g = d
         if R.shape[0] > 0:
             g, _ = sphere_gap(P[i], C, R, slo, shi, sleft, sright, sstart, scount, sorder, stack, d)
-        if g < r_min or not inside_near(P[i], qx, qy, qz, tf, interior, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
+        if g < r_min or (not known and not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs)):
             f[i] = -1.0
             continue
         f[i] = g
@@ -242,5 +247,5 @@ def band_free_distance(P, vox, C, R, r_min, bvh: BVH | None = None):
         sb = BVH.of_spheres(C, R) if len(R) else BVH(np.zeros((1, 3)), np.zeros((1, 3)))
     vox.points_evaluated += len(P)
     return _band_free(
-        np.ascontiguousarray(P), vox.V, vox.F, *vox.bvh.arrays, C, R, *sb.arrays, RAY_DIRS, float(r_min)
+        np.ascontiguousarray(P), vox.V, vox.F, vox.side, *vox.bvh.arrays, C, R, *sb.arrays, RAY_DIRS, float(r_min)
     )

@@ -5,7 +5,8 @@ Level 0 is a uniform lattice over the whole bounding box; level ``l`` has spacin
 gap to the spheres is still too large (adaptive refinement: small ε without a billion
 voxels). Lattices nest (a level-l point is a level-(l+1) point), all share one origin.
 
-Inside/outside comes from the winding number by ray casting through a triangle BVH (signed
+Inside/outside is the nonzero winding number: taken from the face beside the point where no
+other face crosses it (``selfintersect``), else by ray casting through a triangle BVH (signed
 crossings, retried when a ray grazes an edge or vertex); the distance from the BVH closest point.
 """
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 from numba import njit
 
 from .bvh import BVH, RAY_DIRS, signed_distance
+from .selfintersect import crossed_faces, face_sides
 
 KEY_BITS = 21  # lattice coordinates up to 2**21 per axis
 KEY_MASK = (1 << KEY_BITS) - 1
@@ -114,6 +116,10 @@ class Voxelizer:
         self.V = np.ascontiguousarray(vertices, dtype=np.float64)
         self.F = np.ascontiguousarray(faces, dtype=np.int64)
         self.bvh = BVH.of_triangles(self.V, self.F)
+        # winding numbers beside the faces nothing crosses: their points need no ray cast
+        crossed = crossed_faces(self.V, self.F, *self.bvh.arrays)
+        self.crossed_faces = int(crossed.sum())
+        self.side = face_sides(self.V, self.F, crossed, *self.bvh.arrays, RAY_DIRS)
         self.h0 = float(h0)
         lo = self.V.min(axis=0)
         hi = self.V.max(axis=0)
@@ -138,7 +144,7 @@ class Voxelizer:
         self.points_evaluated += len(P)
         if len(P) == 0:
             return np.empty(0)
-        return signed_distance(np.ascontiguousarray(P), self.V, self.F, *self.bvh.arrays, RAY_DIRS)
+        return signed_distance(np.ascontiguousarray(P), self.V, self.F, self.side, *self.bvh.arrays, RAY_DIRS)
 
     def level0(self):
         """All level-0 lattice points inside the mesh and their surface distance."""
