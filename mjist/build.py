@@ -322,7 +322,7 @@ def build(
         worst = stalled[np.argmax(face_ub[stalled])]
         warnings.warn(
             f"certified error bound {eps:.4g} exceeds max_error={max_error:.4g}: {len(stalled)} triangles "
-            f"(worst {worst}, gap <= {face_ub[worst]:.4g}, near {np.round(m.vertices[m.faces[worst]].mean(axis=0), 6).tolist()}) "
+            f"(worst {worst}, gap <= {min(face_ub[worst], eps):.4g}, near {np.round(m.vertices[m.faces[worst]].mean(axis=0), 6).tolist()}) "
             "stay open however fine the lattice: the solid beside them is thinner than the lattice reaches "
             "(a fin or plate of a segmentation, often where its two sides cross). ε counts them, so it stays a "
             "true bound for this mesh; thicken or remove those fins (e.g. MeshLab's 'select self intersecting "
