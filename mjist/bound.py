@@ -15,7 +15,17 @@ Every triangle is split recursively into four; for a sub-triangle T with vertice
   attained at a vertex: ``max_T g <= min_j max_i (|v_i - c_j| - r_j)`` over the spheres
   nearest to the vertices.
 
-The smaller of the two is T's bound ``UB(T)``; a sub-triangle is split again until
+* when neither is at or below the target t: if the balls ``(c_j, r_j + t)`` of the spheres
+  nearest to T's vertices and to its parent's vertices cover T, then ``max_T g <= t``. Their
+  cuts with T's plane are disks; T lies in the union of disks if every vertex of T, every
+  crossing of a circle with an edge of T and every crossing of two circles inside T lies
+  strictly inside another disk (a point of T outside all disks would lie in an uncovered
+  region, whose boundary has such a corner point that no disk's interior holds). This
+  certifies a sub-triangle that a hole between a few spheres spans, where the two bounds
+  above only get there by splitting down to a fraction of the hole (CBCT mandible at
+  0.044 mm: 67 M → 17 M sub-triangles, 34 → 14 s).
+
+The smallest of these is T's bound ``UB(T)``; a sub-triangle is split again until
 ``UB(T) <= target`` or it is smaller than ``min_size`` (or than ``bad_size`` once a vertex
 gap above the target proves it open: splitting it further would only place its seeds finer). Across the builder's lattice
 levels (same target, more spheres, smaller ``min_size``) each triangle's split is the same
@@ -34,6 +44,11 @@ from .bvh import BVH, STACK, ball_gap, face_normal, sphere_gap, sphere_gap_xyz
 
 SUB_STACK = 256
 SEED_BUF = 32  # bad sub-triangle centroids kept per triangle in the first pass
+COVER_SPHERES = 6  # spheres tried by the disk-cover test: nearest to the vertices and to the parent's
+# The cover test runs with the target shrunk by this (relative): rounding in the planar frame
+# (~1e-16 of the coordinates) can then never turn an uncovered point into a covered one.
+COVER_SHRINK = 1e-7
+COVER_MIN_SHAPE = 1e-6  # slivers (2 * area below this times the longest edge squared) are not tested
 # A sub-triangle's place in its triangle's fixed midpoint quadtree, as a key: two bits per level
 # from the top, left-aligned to PATH_DEPTH levels, shifted left by DEPTH_BITS to hold the depth.
 # A sub-triangle's descendants are the keys in [path, path + 4**(PATH_DEPTH - depth)) << DEPTH_BITS;
@@ -59,6 +74,102 @@ def _cov(ax, ay, az, bx, by, bz, cx, cy, cz):
     nz = abx * acy - aby * acx
     area2 = nx * nx + ny * ny + nz * nz
     return np.sqrt(la * lb * lc / (4.0 * area2))
+
+
+@njit(cache=True, inline="always")
+def _in_other_disk(px, py, D, k, m, n):
+    """Is (px, py) strictly inside one of the disks ``D[:k]`` other than ``m`` and ``n``?"""
+    for q in range(k):
+        if q != m and q != n and (px - D[q, 0]) ** 2 + (py - D[q, 1]) ** 2 < D[q, 2] * (1.0 - 1e-9):
+            return True
+    return False
+
+
+@njit(cache=True)
+def _balls_cover(ax, ay, az, bx, by, bz, cx, cy, cz, js, nj, C, R, t, D):
+    """Is the triangle (a, b, c) inside the union of the balls ``(C[j], R[j] + t)``, j in ``js[:nj]``?
+
+    A sufficient test (False when unsure): the balls cut the triangle's plane in disks, and the
+    triangle is covered if each of its vertices, each crossing of a circle with one of its edges
+    and each crossing of two circles inside it lies strictly inside some other disk. ``D`` is
+    scratch space, ``(nj, 3)``: disk centre (x, y) in the triangle's frame and radius squared.
+    """
+    e1x, e1y, e1z = bx - ax, by - ay, bz - az
+    e2x, e2y, e2z = cx - ax, cy - ay, cz - az
+    nx = e1y * e2z - e1z * e2y
+    ny = e1z * e2x - e1x * e2z
+    nz = e1x * e2y - e1y * e2x
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    l1 = np.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+    longest = max(e1x * e1x + e1y * e1y + e1z * e1z, e2x * e2x + e2y * e2y + e2z * e2z,
+                  (cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2)
+    if nn <= COVER_MIN_SHAPE * longest or l1 == 0.0:
+        return False
+    # orthonormal frame (u along ab, v in the plane, n normal); a = (0, 0), b = (l1, 0), c = (x2, y2)
+    ux, uy, uz = e1x / l1, e1y / l1, e1z / l1
+    nx, ny, nz = nx / nn, ny / nn, nz / nn
+    vx, vy, vz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+    x2 = e2x * ux + e2y * uy + e2z * uz
+    y2 = e2x * vx + e2y * vy + e2z * vz
+    k = 0
+    for q in range(nj):
+        j = js[q]
+        dx, dy, dz = C[j, 0] - ax, C[j, 1] - ay, C[j, 2] - az
+        off = dx * nx + dy * ny + dz * nz
+        rr = (R[j] + t) ** 2 - off * off
+        if rr > 0.0:
+            D[k, 0] = dx * ux + dy * uy + dz * uz
+            D[k, 1] = dx * vx + dy * vy + dz * vz
+            D[k, 2] = rr
+            k += 1
+    if k == 0:
+        return False
+    if not (_in_other_disk(0.0, 0.0, D, k, -1, -1) and _in_other_disk(l1, 0.0, D, k, -1, -1)
+            and _in_other_disk(x2, y2, D, k, -1, -1)):
+        return False
+    for m in range(k):  # circle-edge crossings
+        for e in range(3):
+            if e == 0:
+                px, py, qx, qy = 0.0, 0.0, l1, 0.0
+            elif e == 1:
+                px, py, qx, qy = l1, 0.0, x2, y2
+            else:
+                px, py, qx, qy = x2, y2, 0.0, 0.0
+            dx, dy = qx - px, qy - py
+            fx, fy = px - D[m, 0], py - D[m, 1]
+            qa = dx * dx + dy * dy
+            qb = fx * dx + fy * dy
+            disc = qb * qb - qa * (fx * fx + fy * fy - D[m, 2])
+            if disc < 0.0:
+                continue
+            sq = np.sqrt(disc)
+            for s in ((-qb - sq) / qa, (-qb + sq) / qa):
+                if 0.0 <= s <= 1.0 and not _in_other_disk(px + s * dx, py + s * dy, D, k, m, -1):
+                    return False
+    det = l1 * y2
+    for m in range(k):  # circle-circle crossings inside the triangle (or just outside it)
+        for n in range(m + 1, k):
+            dx, dy = D[n, 0] - D[m, 0], D[n, 1] - D[m, 1]
+            d2 = dx * dx + dy * dy
+            if d2 == 0.0:
+                continue
+            d = np.sqrt(d2)
+            rm, rn = np.sqrt(D[m, 2]), np.sqrt(D[n, 2])
+            if d >= rm + rn or d <= abs(rm - rn):
+                continue
+            along = (D[m, 2] - D[n, 2] + d2) / (2.0 * d)
+            half = np.sqrt(max(D[m, 2] - along * along, 0.0))
+            mx, my = D[m, 0] + along * dx / d, D[m, 1] + along * dy / d
+            for sg in (-1.0, 1.0):
+                px = mx - sg * half * dy / d
+                py = my + sg * half * dx / d
+                wb = (px * y2 - py * x2) / det  # barycentric weights of b and c
+                wc = l1 * py / det
+                if wb < -1e-9 or wc < -1e-9 or wb + wc > 1.0 + 1e-9:
+                    continue
+                if not _in_other_disk(px, py, D, k, m, n):
+                    return False
+    return True
 
 
 @njit(cache=True, inline="always")
@@ -118,6 +229,9 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
     KEY = np.empty(SUB_STACK, np.int64)
     DEP = np.empty(SUB_STACK, np.int64)
     ALL = np.empty(SUB_STACK, np.bool_)  # inside an earlier bad sub-triangle: walk everything
+    PJ = np.full((SUB_STACK, 3), -1, np.int64)  # the parent's nearest spheres (for the cover test)
+    js = np.empty(COVER_SPHERES, np.int64)
+    D = np.empty((COVER_SPHERES, 3))
     KEY[0] = 0
     DEP[0] = 0
     n_prev = prev.shape[0]
@@ -153,6 +267,8 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
         cov = _cov(ax, ay, az, bx, by, bz, cx, cy, cz)
         lb_max = max(lb_max, g0, g1, g2)
         ub = _sub_ub(P, G, J, sp, cov, UBP[sp], C, R)
+        if ub > target and max(g0, g1, g2) <= target and _cover_test(P, J, PJ, sp, js, C, R, target, D):
+            ub = target
         # a vertex gap above the target proves the sub-triangle bad: splitting it below bad_size only
         # places its seeds finer; the uncertain ones (bound above, gaps below) go on to min_size
         if ub <= target or cov <= min_size or (cov <= bad_size and max(g0, g1, g2) > target) or sp + 4 > SUB_STACK:
@@ -178,6 +294,7 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
         _put(P, G, J, sp, ax, ay, az, g0, j0, abx, aby, abz, gab, jab, cax, cay, caz, gca, jca)
         for q in range(4):
             UBP[sp + q] = ub
+            PJ[sp + q, 0], PJ[sp + q, 1], PJ[sp + q, 2] = j0, j1, j2
             ALL[sp + q] = walk_all
             if dep < PATH_DEPTH:
                 KEY[sp + q] = key + (np.int64(q) << (2 * (PATH_DEPTH - dep - 1)))
@@ -187,6 +304,25 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
                 DEP[sp + q] = dep
         sp += 4
     return ub_max, lb_max, nbad
+
+
+@njit(cache=True, inline="always")
+def _cover_test(P, J, PJ, sp, js, C, R, target, D):
+    """``_balls_cover`` of sub-triangle ``sp`` by its vertices' and its parent's nearest spheres."""
+    nj = 0
+    for q in range(6):
+        j = J[sp, q] if q < 3 else PJ[sp, q - 3]
+        if j < 0:
+            continue
+        new = True
+        for q2 in range(nj):
+            if js[q2] == j:
+                new = False
+        if new:
+            js[nj] = j
+            nj += 1
+    return _balls_cover(P[sp, 0, 0], P[sp, 0, 1], P[sp, 0, 2], P[sp, 1, 0], P[sp, 1, 1], P[sp, 1, 2],
+                        P[sp, 2, 0], P[sp, 2, 1], P[sp, 2, 2], js, nj, C, R, target * (1.0 - COVER_SHRINK), D)
 
 
 @njit(cache=True, inline="always")
