@@ -17,7 +17,7 @@ from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
 # Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
-BUILDER_VERSION = 6
+BUILDER_VERSION = 5
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
 # Candidate band of each lattice level: cubes of half-width BAND_WIDTH around the centroids of the
@@ -26,16 +26,6 @@ MAX_LEVELS = 12
 # the surface: 2.2x fewer band points, 30 % fewer leaves for the same ε (CBCT mandible, 0.2 mm).
 BAND_WIDTH = 1.0  # in lattice spacings
 SEED_INSET = 0.5  # in lattice spacings
-# Coarse levels (spacing above NARROW_H times the target: most of the surface is still open and
-# these levels hold most band points) take only the lattice point nearest to each seed, the seed
-# moved NARROW_INSET into the solid: one point per seed instead of a 27-point cube. The greedy
-# choice among fewer candidates leaves fewer, better-placed spheres; the finer levels keep the
-# cube to close the last gaps (a single point per seed at every level missed the target by 0.5-3 %
-# on the CBCT mandible at 0.1 mm). CBCT mandible at 0.05 mm: band 64.6 M -> 16.4 M points, leaves
-# 3.23 M -> 2.61 M, 178 -> 148 s, same ε, mean gap 0.0191 -> 0.0182 mm, coverage 71.7 -> 68.7 %.
-NARROW_H = 0.5
-NARROW_WIDTH = 0.0
-NARROW_INSET = 0.75
 # sparse=True: near the surface, only spheres that cover a gap seed (see packing.greedy_pack), on
 # the levels whose spacing is between COVER_MIN_H and 2 (inset reach > 0) times the target: there
 # a band of lattice-sized spheres covers each seed many times over. Finer levels only fill sharp
@@ -216,15 +206,13 @@ def build(
         if len(R) >= max_leaves:
             break
         h = vox.spacing(level)
-        narrow = target > 0 and h > NARROW_H * target
-        band_width, inset = (NARROW_WIDTH, NARROW_INSET) if narrow else (BAND_WIDTH, SEED_INSET)
         t_level = time.perf_counter()
         tc = time.perf_counter()
         sph_bvh = BVH.of_spheres(C, R) if len(R) else None
         if len(R):
             ub_f, _, seeds, paths = certify_faces(
                 m.vertices, m.faces, open_faces, C, R, target, CERT_MIN_SIZE * h, want_seeds=True, bvh=sph_bvh,
-                seed_inset=inset * h, prev=open_paths, bad_size=h,
+                seed_inset=SEED_INSET * h, prev=open_paths, bad_size=h,
             )
             face_ub[open_faces] = ub_f
             stuck = (ub_f > target) & (ub_f > (1.0 - STALL_GAIN) * ub_before[-1][open_faces]) & (h <= STALL_H * target)
@@ -253,7 +241,7 @@ def build(
             break
         tv = time.perf_counter()
         r_min = 0.5 * h
-        band = vox.band_keys(level, (seeds, band_width * h), (gaps, FILL_BAND_WIDTH * h))
+        band = vox.band_keys(level, (seeds, BAND_WIDTH * h), (gaps, FILL_BAND_WIDTH * h))
         n_band = len(band)
         if n_band > MAX_BAND_POINTS:
             warnings.warn(
@@ -284,10 +272,10 @@ def build(
         t_vox += time.perf_counter() - tv
         tp = time.perf_counter()
         # spheres only where they close a gap (not with the interior fill, which wants volume);
-        # a seed lies inset*h inside the surface, so reaching it within target - that
+        # a seed lies SEED_INSET*h inside the surface, so reaching it within target - that
         # inset puts the surface point above it within target
-        cover = sparse and COVER_MIN_H * target <= h < target / inset
-        reach = target - inset * h
+        cover = sparse and COVER_MIN_H * target <= h < target / SEED_INSET
+        reach = target - SEED_INSET * h
         grid = seed_grid(seeds, vox.origin, max(target, h), reach) if cover else NO_SEEDS
         Cn, Rn = greedy_pack(P, f, keys, vox.origin, h, r_min, max_leaves - len(R), SHRINK, *grid)
         if fill:
