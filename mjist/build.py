@@ -12,12 +12,12 @@ from .bound import certify_faces, restrict_paths, surface_gaps, tight_bound
 from .bvh import BVH
 from .hierarchy import build_hierarchy
 from .mesh import load_mesh
-from .packing import NO_SEEDS, band_free_distance, greedy_pack, seed_grid
+from .packing import NO_SEEDS, band_free_distance, greedy_pack, grown_pack, seed_grid
 from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
 # Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
-BUILDER_VERSION = 5
+BUILDER_VERSION = 7
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
 # Candidate band of each lattice level: cubes of half-width BAND_WIDTH around the centroids of the
@@ -46,9 +46,21 @@ CERT_MIN_SIZE = 0.25  # in lattice spacings
 STALL_GAIN = 0.01
 STALL_LEVELS = 3
 STALL_H = 1.0 / 16.0
+# Grown packing (packing.grown_pack): each sphere moves off the lattice into the centre of its
+# hole, touching three or four obstacles instead of one. Level 0 then keeps spheres down to
+# LEVEL0_R_MIN spacings (a grown sphere fills a hole a lattice point could not): its holes are
+# the deep interior, which no later level visits. CBCT mandible at 0.1 mm: 804 k -> 410 k leaves
+# for the same certified ε, coverage 71 -> 84 %.
+GROW = True
+LEVEL0_R_MIN = 0.125  # in level-0 spacings, with growth (0.5 without, or with min_coverage)
 FILL_BAND_WIDTH = 2.0  # around interior gap points (min_coverage): the gaps need the wider choice
 MAX_BAND_POINTS = 120_000_000  # band keys of one level (8 bytes each, ~3x that at the dilation's peak)
 BAND_CHUNK = 4_000_000  # band points decoded and evaluated at a time
+# The final bound is tightened until within TIGHT_REL of a gap found on the surface, or within
+# TIGHT_REL_MET once the levels certified max_error (an icosphere of 320 faces filled by grown
+# spheres: 125 s at 5 %, 2.4 s at 20 %, ε 0.01558 vs 0.01585).
+TIGHT_REL = 0.05
+TIGHT_REL_MET = 0.2
 SHRINK = 1e-9  # relative radius shrink against rounding overlaps
 DEFAULT_REL_ERROR = 5e-3  # default max_error, relative to the bounding-box diagonal
 
@@ -188,12 +200,19 @@ def build(
     tp = time.perf_counter()
     keys = encode(np.rint((P - vox.origin) / h0).astype(np.int64))
     f = D.copy()
-    C, R = greedy_pack(P, f, keys, vox.origin, h0, 0.5 * h0, max_leaves, SHRINK, *NO_SEEDS)
-    t_pack += time.perf_counter() - tp
-    # interior fill: lattice points left in the gaps between spheres seed the next level
     fill = min_coverage is not None
+    r_min0 = (LEVEL0_R_MIN if GROW else 0.5) * h0
+    if GROW:
+        C, R = grown_pack(P, f, keys, vox.origin, h0, r_min0, max_leaves, SHRINK, vox)
+    else:
+        C, R = greedy_pack(P, f, keys, vox.origin, h0, r_min0, max_leaves, SHRINK, *NO_SEEDS)
+    t_pack += time.perf_counter() - tp
+    # interior fill: lattice points left in the holes between spheres (free distance gap_f)
+    # seed the first level whose smallest sphere fits there
     filled = 4.0 / 3.0 * np.pi * float(np.sum(R**3))
-    gaps = P[f >= 0.25 * h0] if fill else np.empty((0, 3))
+    hole = (f >= 0.5 * r_min0) & (f < r_min0)  # (f >= r_min0: the spheres' own centres)
+    gaps = P[hole] if fill else np.empty((0, 3))
+    gap_f = f[hole] if fill else np.empty(0)
     levels = 0
     level_log = [{"level": 0, "spacing": h0, "band_points": int(len(P)), "spheres": int(len(R)), "seconds": time.perf_counter() - tv}]
     certified = np.inf  # best bound so far (stays valid as spheres are added)
@@ -234,14 +253,16 @@ def build(
         if surface_done:
             seeds = seeds[:0]
         if fill and (filled >= min_coverage * m.volume or (surface_done and h < 0.5 * target)):
-            gaps = gaps[:0]  # covered enough, or finer than the surface itself needs
+            gaps, gap_f = gaps[:0], gap_f[:0]  # covered enough, or finer than the surface itself needs
         if len(seeds) == 0 and len(gaps) == 0:
             break
         if h < 1e-7 * diag:
             break
         tv = time.perf_counter()
         r_min = 0.5 * h
-        band = vox.band_keys(level, (seeds, BAND_WIDTH * h), (gaps, FILL_BAND_WIDTH * h))
+        now = gap_f >= r_min
+        band = vox.band_keys(level, (seeds, BAND_WIDTH * h), (gaps[now], FILL_BAND_WIDTH * h))
+        gaps, gap_f = gaps[~now], gap_f[~now]  # holes too small for this level: a finer one
         n_band = len(band)
         if n_band > MAX_BAND_POINTS:
             warnings.warn(
@@ -253,13 +274,14 @@ def build(
             break
         # the band in chunks (its free distances only depend on the spheres of earlier levels):
         # memory holds the keys and the candidates, not the whole band's points
-        parts, gap_parts = [], []
+        parts, gap_parts = [], [(gaps, gap_f)]
         for s in range(0, n_band, BAND_CHUNK):
             kc = band[s:s + BAND_CHUNK]
             Pc = decode(kc, vox.origin, h)
             fc = band_free_distance(Pc, vox, C, R, r_min, bvh=sph_bvh)
             if fill:  # points too tight for this level may hold a sphere of the next one
-                gap_parts.append(Pc[(fc >= 0.5 * r_min) & (fc < r_min)])
+                hole = (fc >= 0.5 * r_min) & (fc < r_min)
+                gap_parts.append((Pc[hole], fc[hole]))
             keep = fc >= r_min
             parts.append((Pc[keep], fc[keep], kc[keep]))
         del band
@@ -268,7 +290,8 @@ def build(
         keys = np.concatenate([q[2] for q in parts]) if parts else np.empty(0, np.int64)
         del parts
         if fill:
-            gaps = np.concatenate(gap_parts) if gap_parts else np.empty((0, 3))
+            gaps = np.concatenate([q[0] for q in gap_parts])
+            gap_f = np.concatenate([q[1] for q in gap_parts])
         t_vox += time.perf_counter() - tv
         tp = time.perf_counter()
         # spheres only where they close a gap (not with the interior fill, which wants volume);
@@ -277,9 +300,14 @@ def build(
         cover = sparse and COVER_MIN_H * target <= h < target / SEED_INSET
         reach = target - SEED_INSET * h
         grid = seed_grid(seeds, vox.origin, max(target, h), reach) if cover else NO_SEEDS
-        Cn, Rn = greedy_pack(P, f, keys, vox.origin, h, r_min, max_leaves - len(R), SHRINK, *grid)
+        if GROW:
+            Cn, Rn = grown_pack(P, f, keys, vox.origin, h, r_min, max_leaves - len(R), SHRINK, vox, prior=(C, R, sph_bvh), seeds=grid)
+        else:
+            Cn, Rn = greedy_pack(P, f, keys, vox.origin, h, r_min, max_leaves - len(R), SHRINK, *grid)
         if fill:
-            gaps = np.concatenate([gaps, P[f >= 0.5 * r_min]])
+            hole = (f >= 0.5 * r_min) & (f < r_min)
+            gaps = np.concatenate([gaps, P[hole]])
+            gap_f = np.concatenate([gap_f, f[hole]])
             filled += 4.0 / 3.0 * np.pi * float(np.sum(Rn**3))
         C = np.concatenate([C, Cn])
         R = np.concatenate([R, Rn])
@@ -311,7 +339,10 @@ def build(
     bar.stage("error bound")
     t = time.perf_counter()
     leaf_bvh = BVH.of_spheres(C, R)  # the leaves in packing order: one BVH for both passes
-    eps, eps_lo = tight_bound(m.vertices, m.faces, C, R, known=certified, bvh=leaf_bvh)
+    # once the target is certified, tightening ε below it needs less: where the gap is flat
+    # near its maximum (many grown spheres hugging a coarse surface) a 5 % walk can take minutes
+    rel = TIGHT_REL_MET if certified <= target else TIGHT_REL
+    eps, eps_lo = tight_bound(m.vertices, m.faces, C, R, rel_tol=rel, known=certified, bvh=leaf_bvh)
     mean_gap = float(surface_gaps(m.vertices, m.faces, C, R, seed=int(seed), bvh=leaf_bvh).mean())
     timings["bound"] = time.perf_counter() - t + t_cert
     timings["total"] = time.perf_counter() - t0

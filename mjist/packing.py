@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import BVH, NO_SIDE, RAY_DIRS, STACK, inside_near, sphere_gap, tri_closest
+from .bvh import BVH, NO_SIDE, RAY_DIRS, STACK, ball_gap, box_dist2, closest_on_triangle, inside_near, sphere_gap, tri_closest
 from .voxelize import KEY_BITS, KEY_MASK
 
 
@@ -248,4 +248,402 @@ def band_free_distance(P, vox, C, R, r_min, bvh: BVH | None = None):
     vox.points_evaluated += len(P)
     return _band_free(
         np.ascontiguousarray(P), vox.V, vox.F, vox.side, *vox.bvh.arrays, C, R, *sb.arrays, RAY_DIRS, float(r_min)
+    )
+
+
+# --- grown packing: each sphere moves off the lattice to the centre of its hole --------------
+#
+# A lattice candidate is up to ~0.9 spacings from the best centre of the hole it lies in, so its
+# sphere is smaller than the hole allows and the rest of the hole stays empty. Protosphere
+# (Weller & Zachmann) moves each prototype away from its nearest obstacle until it touches
+# several. Here, once per sphere, the obstacles within GROW_REACH free distances of the
+# candidate are gathered (triangles, earlier spheres, this packing's spheres); the centre then
+# climbs their free distance (see _climb) for up to GROW_ITERS steps, each along the direction
+# that raises the distances to the obstacles within GROW_TOL of the nearest fastest.
+GROW_ITERS = 12
+GROW_TOL = 0.01
+GROW_BUF = 256  # obstacles gathered per sphere at first (buffers double on demand)
+GROW_BUF_MAX = 1 << 16  # more than this: the sphere stays on its lattice point
+
+
+@njit(cache=True)
+def _cell_range(v, b, origin, g, dims, axis):
+    lo = int(np.floor((v - b - origin[axis]) / g))
+    hi = int(np.floor((v + b - origin[axis]) / g))
+    return min(max(lo, 0), dims[axis] - 1), min(max(hi, 0), dims[axis] - 1)
+
+
+# The spheres placed by one grown packing are registered in every cell of a uniform grid that
+# their bounding box touches (``head`` per cell, linked entries ``nxt``/``sid``, grown by
+# doubling). A sphere whose gap to a point x is below b touches the cube x ± b, so the cells of
+# that cube hold it.
+@njit(cache=True)
+def _grid_insert(k, cx, cy, cz, r, head, nxt, sid, ne, origin, g, dims):
+    """Register sphere ``k``; returns the (possibly reallocated) entry arrays and their count."""
+    a0, a1 = _cell_range(cx, r, origin, g, dims, 0)
+    b0, b1 = _cell_range(cy, r, origin, g, dims, 1)
+    c0, c1 = _cell_range(cz, r, origin, g, dims, 2)
+    need = ne + (a1 - a0 + 1) * (b1 - b0 + 1) * (c1 - c0 + 1)
+    if need > nxt.shape[0]:
+        cap = max(2 * nxt.shape[0], need)
+        n2 = np.empty(cap, np.int64)
+        s2 = np.empty(cap, np.int64)
+        n2[:ne] = nxt[:ne]
+        s2[:ne] = sid[:ne]
+        nxt, sid = n2, s2
+    for a in range(a0, a1 + 1):
+        for b in range(b0, b1 + 1):
+            for c in range(c0, c1 + 1):
+                cell = (a * dims[1] + b) * dims[2] + c
+                nxt[ne] = head[cell]
+                sid[ne] = k
+                head[cell] = ne
+                ne += 1
+    return nxt, sid, ne
+
+
+@njit(cache=True)
+def _gather(x, y, z, bound, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, head, nxt, sid, origin, g, dims,
+            PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, stack, OC, OR, OT):
+    """Obstacles closer than ``bound`` to ``(x, y, z)``: spheres into ``OC, OR``, triangles into
+    ``OT``. Returns their counts, or -1 when the buffers overflow."""
+    ns = 0
+    nt = 0
+    cap = OR.shape[0]
+    # this packing's spheres (each once: in the first cell of the scan that holds it)
+    a0, a1 = _cell_range(x, bound, origin, g, dims, 0)
+    b0, b1 = _cell_range(y, bound, origin, g, dims, 1)
+    c0, c1 = _cell_range(z, bound, origin, g, dims, 2)
+    for a in range(a0, a1 + 1):
+        for b in range(b0, b1 + 1):
+            for c in range(c0, c1 + 1):
+                e = head[(a * dims[1] + b) * dims[2] + c]
+                while e >= 0:
+                    j = sid[e]
+                    e = nxt[e]
+                    if np.sqrt((x - C[j, 0]) ** 2 + (y - C[j, 1]) ** 2 + (z - C[j, 2]) ** 2) - R[j] >= bound:
+                        continue
+                    if (a != max(a0, _cell_range(C[j, 0], R[j], origin, g, dims, 0)[0])
+                            or b != max(b0, _cell_range(C[j, 1], R[j], origin, g, dims, 1)[0])
+                            or c != max(c0, _cell_range(C[j, 2], R[j], origin, g, dims, 2)[0])):
+                        continue
+                    if ns == cap:
+                        return -1, -1
+                    OC[ns, 0], OC[ns, 1], OC[ns, 2] = C[j, 0], C[j, 1], C[j, 2]
+                    OR[ns] = R[j]
+                    ns += 1
+    # earlier spheres and triangles: BVH range searches
+    b2 = bound * bound
+    if PR.shape[0] > 0:
+        stack[0] = 0
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            node = stack[sp]
+            if box_dist2(x, y, z, slo, shi, node) >= b2:
+                continue
+            if sleft[node] < 0:
+                for i in range(sstart[node], sstart[node] + scount[node]):
+                    j = sorder[i]
+                    if ball_gap(x, y, z, PC, PR, j) < bound:
+                        if ns == cap:
+                            return -1, -1
+                        OC[ns, 0], OC[ns, 1], OC[ns, 2] = PC[j, 0], PC[j, 1], PC[j, 2]
+                        OR[ns] = PR[j]
+                        ns += 1
+                continue
+            stack[sp] = sleft[node]
+            stack[sp + 1] = sright[node]
+            sp += 2
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if box_dist2(x, y, z, tlo, thi, node) >= b2:
+            continue
+        if tleft[node] < 0:
+            for i in range(tstart[node], tstart[node] + tcount[node]):
+                f = torder[i]
+                qx, qy, qz, _ = closest_on_triangle(x, y, z, V, F[f, 0], F[f, 1], F[f, 2])
+                if (qx - x) ** 2 + (qy - y) ** 2 + (qz - z) ** 2 < b2:
+                    if nt == OT.shape[0]:
+                        return -1, -1
+                    OT[nt] = f
+                    nt += 1
+            continue
+        stack[sp] = tleft[node]
+        stack[sp + 1] = tright[node]
+        sp += 2
+    return ns, nt
+
+
+@njit(cache=True)
+def _local_free(x, y, z, V, F, OC, OR, ns, OT, nt):
+    """Free distance at ``(x, y, z)`` among the gathered obstacles."""
+    best = np.inf
+    for j in range(ns):
+        d = np.sqrt((x - OC[j, 0]) ** 2 + (y - OC[j, 1]) ** 2 + (z - OC[j, 2]) ** 2) - OR[j]
+        if d < best:
+            best = d
+    for i in range(nt):
+        f = OT[i]
+        qx, qy, qz, _ = closest_on_triangle(x, y, z, V, F[f, 0], F[f, 1], F[f, 2])
+        d = np.sqrt((qx - x) ** 2 + (qy - y) ** 2 + (qz - z) ** 2)
+        if d < best:
+            best = d
+    return best
+
+
+@njit(cache=True)
+def _slopes(x, y, z, V, F, OC, OR, ns, OT, nt, D, U):
+    """Distance ``D`` to each gathered obstacle and its unit gradient ``U`` (away from it)."""
+    for j in range(ns):
+        dx, dy, dz = x - OC[j, 0], y - OC[j, 1], z - OC[j, 2]
+        n = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-300)
+        D[j] = n - OR[j]
+        U[j, 0], U[j, 1], U[j, 2] = dx / n, dy / n, dz / n
+    for i in range(nt):
+        f = OT[i]
+        qx, qy, qz, _ = closest_on_triangle(x, y, z, V, F[f, 0], F[f, 1], F[f, 2])
+        dx, dy, dz = x - qx, y - qy, z - qz
+        n = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-300)
+        D[ns + i] = n
+        U[ns + i, 0], U[ns + i, 1], U[ns + i, 2] = dx / n, dy / n, dz / n
+
+
+@njit(cache=True)
+def _min_rate(U, act, na, dx, dy, dz):
+    m = np.inf
+    for a in range(na):
+        j = act[a]
+        m = min(m, U[j, 0] * dx + U[j, 1] * dy + U[j, 2] * dz)
+    return m
+
+
+@njit(cache=True)
+def _ascent(U, act, na):
+    """Unit direction that raises the distances to the active obstacles fastest (max-min rate).
+
+    The optimum is the gradient of one obstacle, the bisector of two or the equal-rate
+    direction of three of them: all are tried, the best kept. Returns it and its rate."""
+    bx = by = bz = 0.0
+    best = -np.inf
+    for a in range(na):
+        j = act[a]
+        r = _min_rate(U, act, na, U[j, 0], U[j, 1], U[j, 2])
+        if r > best:
+            best, bx, by, bz = r, U[j, 0], U[j, 1], U[j, 2]
+        for b in range(a + 1, na):
+            k = act[b]
+            sx, sy, sz = U[j, 0] + U[k, 0], U[j, 1] + U[k, 1], U[j, 2] + U[k, 2]
+            n = np.sqrt(sx * sx + sy * sy + sz * sz)
+            if n > 1e-9:
+                sx, sy, sz = sx / n, sy / n, sz / n
+                r = _min_rate(U, act, na, sx, sy, sz)
+                if r > best:
+                    best, bx, by, bz = r, sx, sy, sz
+            for c in range(b + 1, na):
+                l = act[c]
+                # d with U_j.d = U_k.d = U_l.d = 1 (Cramer's rule), then normalized
+                a0, a1, a2 = U[j, 0], U[j, 1], U[j, 2]
+                b0, b1, b2 = U[k, 0], U[k, 1], U[k, 2]
+                c0, c1, c2 = U[l, 0], U[l, 1], U[l, 2]
+                det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
+                if abs(det) < 1e-9:
+                    continue
+                # inverse by cross products: d = (b x c + c x a + a x b) / det
+                d0 = ((b1 * c2 - b2 * c1) + (c1 * a2 - c2 * a1) + (a1 * b2 - a2 * b1)) / det
+                d1 = ((b2 * c0 - b0 * c2) + (c2 * a0 - c0 * a2) + (a2 * b0 - a0 * b2)) / det
+                d2 = ((b0 * c1 - b1 * c0) + (c0 * a1 - c1 * a0) + (a0 * b1 - a1 * b0)) / det
+                n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                if n > 1e-12:
+                    d0, d1, d2 = d0 / n, d1 / n, d2 / n
+                    r = _min_rate(U, act, na, d0, d1, d2)
+                    if r > best:
+                        best, bx, by, bz = r, d0, d1, d2
+    return bx, by, bz, best
+
+
+@njit(cache=True)
+def _climb(x0, y0, z0, cur, reach, iters, tol, V, F, OC, OR, ns, OT, nt, D, U, act):
+    """Climb the free distance of the gathered obstacles from a candidate of free distance ``cur``.
+
+    The obstacles are all those within ``reach * cur`` of the start; moving by ``m`` changes
+    the free distance by at most ``m``, so within ``(reach - 1) / 2 * cur`` of the start the
+    local free distance is the true one: the centre stays in that ball. Each step goes along
+    the ascent direction of the obstacles within ``tol`` of the nearest, as far as the lower
+    envelope of the distances' tangent lines keeps rising (distances to spheres and triangles
+    are convex along a line, so the free distance there is at least that envelope: it never
+    drops, and it stays positive, so the centre stays inside the solid).
+    """
+    x, y, z = x0, y0, z0
+    no = ns + nt
+    mv = 0.5 * (reach - 1.0) * cur
+    for _ in range(iters):
+        _slopes(x, y, z, V, F, OC, OR, ns, OT, nt, D, U)
+        cur = np.inf
+        for j in range(no):
+            cur = min(cur, D[j])
+        # the direction raises the obstacles within t of the nearest: t = tol first (fewer,
+        # longer steps); where they block each other, a tighter t (the envelope steps past the
+        # ones left out, up to where they tie)
+        moved = False
+        t = tol
+        while t > 1e-7 and not moved:
+            na = 0
+            for j in range(no):
+                if D[j] <= cur * (1.0 + t) and na < act.shape[0]:
+                    act[na] = j
+                    na += 1
+            t *= 0.1
+            dx, dy, dz, rho = _ascent(U, act, na)
+            if rho <= 1e-3:
+                continue
+            # farthest s with the envelope cur + rho*s still the minimum of all tangent lines
+            s = np.inf
+            for j in range(no):
+                m = U[j, 0] * dx + U[j, 1] * dy + U[j, 2] * dz
+                if m < rho:
+                    s = min(s, max(D[j] - cur, 0.0) / (rho - m))
+            # and inside the ball where the gathered obstacles are all that matter
+            wx, wy, wz = x - x0, y - y0, z - z0
+            wd = wx * dx + wy * dy + wz * dz
+            disc = wd * wd - (wx * wx + wy * wy + wz * wz - mv * mv)
+            s = min(s, -wd + np.sqrt(max(disc, 0.0)))
+            if s > 1e-6 * cur:
+                x, y, z = x + s * dx, y + s * dy, z + s * dz
+                moved = True
+        if not moved:  # no direction raises them all: the centre of its hole
+            break
+    return x, y, z, _local_free(x, y, z, V, F, OC, OR, ns, OT, nt)
+
+
+@njit(cache=True)
+def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, tleft, tright, tstart, tcount, torder,
+                PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, gorigin, g, gdims, iters, tol, reach_f, buf, S, ckeys, cstart, cg, cover):
+    n = P.shape[0]
+    hk = np.empty(n + 1)
+    hix = np.empty(n + 1, np.int64)
+    hn = 0
+    for i in range(n):
+        if f[i] >= r_min:
+            hn = _heap_push(hk, hix, hn, f[i], i)
+    alive = f >= r_min
+    C = np.empty((min(n, max_new), 3))
+    R = np.empty(min(n, max_new))
+    head = np.full(gdims[0] * gdims[1] * gdims[2], -1, np.int64)
+    nxt = np.empty(1024, np.int64)
+    sid = np.empty(1024, np.int64)
+    ne = 0
+    stack = np.empty(STACK, np.int64)
+    OC = np.empty((buf, 3))
+    OR = np.empty(buf)
+    OT = np.empty(buf, np.int64)
+    Dj = np.empty(2 * buf)
+    Uj = np.empty((2 * buf, 3))
+    act = np.empty(16, np.int64)
+    nseeds = S.shape[0]
+    cend = cstart[1:].copy()
+    k = 0
+    while hn > 0 and k < max_new:
+        key, i, hn = _heap_pop(hk, hix, hn)
+        if not alive[i]:
+            continue
+        if f[i] < key:  # stale entry: reinsert with the current value
+            if f[i] >= r_min:
+                hn = _heap_push(hk, hix, hn, f[i], i)
+            else:
+                alive[i] = False
+            continue
+        alive[i] = False
+        x, y, z = P[i, 0], P[i, 1], P[i, 2]
+        start = f[i]
+        cur = start
+        if iters > 0:
+            while True:
+                ns, nt = _gather(x, y, z, reach_f * start, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C[:k],
+                                 R[:k], head, nxt, sid, gorigin, g, gdims, PC, PR, slo, shi, sleft, sright, sstart, scount,
+                                 sorder, stack, OC, OR, OT)
+                if ns >= 0 or OR.shape[0] >= GROW_BUF_MAX:
+                    break
+                OC = np.empty((2 * OR.shape[0], 3))  # a large sphere near a fine surface
+                OT = np.empty(2 * OR.shape[0], np.int64)
+                OR = np.empty(2 * OR.shape[0])
+                Dj = np.empty(2 * OR.shape[0])
+                Uj = np.empty((2 * OR.shape[0], 3))
+            if ns >= 0:  # else too crowded to gather: stays on its lattice point
+                x, y, z, cur = _climb(x, y, z, start, reach_f, iters, tol, V, F, OC, OR, ns, OT, nt, Dj, Uj, act)
+        r = cur * (1.0 - shrink)
+        if nseeds > 0 and not _cover_seeds(x, y, z, r + cover, S, ckeys, cstart, cend, origin, cg):
+            continue  # every seed it reaches is covered already: it would close no gap
+        C[k, 0], C[k, 1], C[k, 2] = x, y, z
+        R[k] = r
+        nxt, sid, ne = _grid_insert(k, x, y, z, r, head, nxt, sid, ne, gorigin, g, gdims)
+        k += 1
+        # candidates within r + start can have their free distance lowered (all others have
+        # f <= start, the heap's current top)
+        reach = r + start
+        lo0 = int(np.ceil((x - reach - origin[0]) / h))
+        hi0 = int(np.floor((x + reach - origin[0]) / h))
+        lo1 = int(np.ceil((y - reach - origin[1]) / h))
+        hi1 = int(np.floor((y + reach - origin[1]) / h))
+        lo2 = int(np.ceil((z - reach - origin[2]) / h))
+        hi2 = int(np.floor((z + reach - origin[2]) / h))
+        for a in range(max(lo0, 0), hi0 + 1):
+            for b in range(max(lo1, 0), hi1 + 1):
+                base = (a << (2 * KEY_BITS)) | (b << KEY_BITS)
+                j0 = np.searchsorted(keys, base | max(lo2, 0))
+                j1 = np.searchsorted(keys, base | hi2, side="right")
+                for j in range(j0, j1):
+                    if not alive[j]:
+                        continue
+                    gap = np.sqrt((P[j, 0] - x) ** 2 + (P[j, 1] - y) ** 2 + (P[j, 2] - z) ** 2) - r
+                    if gap < f[j]:
+                        f[j] = gap
+                        if gap < r_min:
+                            alive[j] = False
+    return C[:k].copy(), R[:k].copy()
+
+
+GRID_MAX_CELLS = 1 << 23  # cells of the sphere grid of a grown packing (8 bytes each)
+GROW_REACH = 5.0  # obstacles gathered within this many start radii: the centre moves up to two
+# (CBCT mandible at 0.1 mm: reach 3 / 5 / 7 gave 424 / 410 / 409 k leaves, coverage 82.8 / 83.9 / 84.2 %)
+
+
+def grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, vox, prior=None, seeds=NO_SEEDS, iters=None):
+    """Greedy packing whose spheres grow off the lattice into the centre of their holes.
+
+    Like ``greedy_pack`` (largest free candidate first, ``f`` lowered in place), but each
+    popped candidate's centre then climbs the free distance (see ``GROW_ITERS``) before its
+    sphere is placed: a sphere touches three or four obstacles instead of one, so fewer, larger
+    spheres fill the same solid.
+
+    Parameters
+    ----------
+    P, f, keys, origin, h, r_min, max_new, shrink
+        As ``greedy_pack``; every candidate must lie inside the solid with ``f`` its exact
+        free distance.
+    vox : voxelize.Voxelizer
+        The mesh (its triangle BVH gives the obstacles off the lattice).
+    prior : (C, R, BVH) or None
+        Spheres placed before (by coarser levels), obstacles too.
+    seeds : tuple
+        ``seed_grid``'s output: keep only the grown spheres that cover a seed (see
+        ``greedy_pack``); ``NO_SEEDS`` keeps all.
+    iters : int, optional
+        Climbing steps per sphere (default ``GROW_ITERS``; 0 places spheres on the lattice).
+    """
+    lo = vox.V.min(axis=0) - h
+    ext = vox.V.max(axis=0) + h - lo
+    g = max(float(h), float(np.cbrt(np.prod(ext) / GRID_MAX_CELLS)))
+    gdims = np.maximum(np.ceil(ext / g).astype(np.int64), 1)
+    if prior is not None and len(prior[1]):
+        PC, PR, sb = prior
+    else:
+        PC, PR, sb = np.zeros((0, 3)), np.zeros(0), BVH(np.zeros((1, 3)), np.zeros((1, 3)))
+    return _grown_pack(
+        np.ascontiguousarray(P), f, keys, origin, float(h), float(r_min), int(max_new), float(shrink), vox.V, vox.F,
+        *vox.bvh.arrays, PC, PR, *sb.arrays, lo, g, gdims, int(GROW_ITERS if iters is None else iters),
+        float(GROW_TOL), float(GROW_REACH), int(GROW_BUF), *seeds,
     )

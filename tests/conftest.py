@@ -21,9 +21,10 @@ def shared_path(*parts) -> Path:
     return p
 
 
-def gaps_to_union(points, centers, radii, chunk=2048):
+def gaps_to_union(points, centers, radii):
     """Exact distance (clamped at 0) from each point to the union of spheres, brute force."""
     out = np.empty(len(points))
+    chunk = max(1, 4_000_000 // max(len(centers), 1))  # (chunk, spheres, 3) temporaries: ~100 MB
     for a in range(0, len(points), chunk):
         p = points[a:a + chunk]
         d = np.sqrt(((p[:, None, :] - centers[None, :, :]) ** 2).sum(-1)) - radii[None, :]
