@@ -29,7 +29,7 @@ SHARED = ROOT.parent / "shared" / "data"
 CASES = [
     ("mandible (bundled, m)", ROOT / "models" / "mandible.obj", [4e-4, 2e-4, (5e-4, 0.9)]),
     ("maxilla (bundled, m)", ROOT / "models" / "maxilla.obj", [4e-4, 2e-4]),
-    ("mandible (real, m)", SHARED / "jaw" / "mandible.obj", [1e-3, 4e-4, 2e-4, 1e-4, 5e-5, (4e-4, 0.9),
+    ("mandible (real, m)", SHARED / "jaw" / "mandible.obj", [1e-3, 4e-4, 2e-4, 1e-4, 5e-5, (4e-4, 0.9), (5e-5, 0.9),
                                                                   (1e-4, "sparse"), (5e-5, "sparse")]),
     ("maxilla (real, m)", SHARED / "jaw" / "maxilla.obj", [1e-3, 4e-4, 2e-4, 1e-4, 5e-5, (1e-4, "sparse"), (5e-5, "sparse")]),
     ("bunny (mm)", SHARED / "stanford" / "bunny.obj", [2.0, 1.0, 0.5]),
