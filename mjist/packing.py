@@ -60,6 +60,62 @@ def _heap_pop(hk, hi, n):
     return key, idx, n
 
 
+@njit(cache=True)
+def _heap_of(f, r_min):
+    """Heap of the candidates with free distance ``f >= r_min``, and which are alive."""
+    n = f.shape[0]
+    hk = np.empty(n + 1)
+    hix = np.empty(n + 1, np.int64)
+    hn = 0
+    for i in range(n):
+        if f[i] >= r_min:
+            hn = _heap_push(hk, hix, hn, f[i], i)
+    return hk, hix, hn, f >= r_min
+
+
+@njit(cache=True)
+def _pop_live(hk, hix, hn, f, alive, r_min):
+    """The live candidate of largest current ``f`` (-1 when none is left) and the heap size."""
+    while hn > 0:
+        key, i, hn = _heap_pop(hk, hix, hn)
+        if not alive[i]:
+            continue
+        if f[i] < key:  # stale entry: reinsert with the current value
+            if f[i] >= r_min:
+                hn = _heap_push(hk, hix, hn, f[i], i)
+            else:
+                alive[i] = False
+            continue
+        return i, hn
+    return -1, hn
+
+
+@njit(cache=True)
+def _lower_free(P, f, alive, keys, origin, h, x, y, z, r, reach, r_min):
+    """Lower ``f`` of the live candidates within ``reach`` of a new sphere ``(x, y, z), r``
+    (lattice box scan), dropping those left below ``r_min``."""
+    lo0 = int(np.ceil((x - reach - origin[0]) / h))
+    hi0 = int(np.floor((x + reach - origin[0]) / h))
+    lo1 = int(np.ceil((y - reach - origin[1]) / h))
+    hi1 = int(np.floor((y + reach - origin[1]) / h))
+    lo2 = int(np.ceil((z - reach - origin[2]) / h))
+    hi2 = int(np.floor((z + reach - origin[2]) / h))
+    for a in range(max(lo0, 0), hi0 + 1):
+        for b in range(max(lo1, 0), hi1 + 1):
+            # the keys of one (a, b) row are contiguous in sorted order
+            base = (a << (2 * KEY_BITS)) | (b << KEY_BITS)
+            j0 = np.searchsorted(keys, base | max(lo2, 0))
+            j1 = np.searchsorted(keys, base | hi2, side="right")
+            for j in range(j0, j1):
+                if not alive[j]:
+                    continue
+                gap = np.sqrt((P[j, 0] - x) ** 2 + (P[j, 1] - y) ** 2 + (P[j, 2] - z) ** 2) - r
+                if gap < f[j]:
+                    f[j] = gap
+                    if gap < r_min:
+                        alive[j] = False
+
+
 NO_SEEDS = (np.empty((0, 3), np.float32), np.empty(0, np.int64), np.zeros(1, np.int64), 1.0, 0.0)  # greedy_pack without the cover test
 
 
@@ -150,59 +206,27 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart,
     centers (k, 3), radii (k,) in placement order (non-increasing radius).
     """
     n = P.shape[0]
-    hk = np.empty(n + 1)
-    hix = np.empty(n + 1, np.int64)
-    hn = 0
-    for i in range(n):
-        if f[i] >= r_min:
-            hn = _heap_push(hk, hix, hn, f[i], i)
-    alive = f >= r_min
+    hk, hix, hn, alive = _heap_of(f, r_min)
     ns = S.shape[0]
     cend = cstart[1:].copy()
     C = np.empty((min(n, max_new), 3))
     R = np.empty(min(n, max_new))
     k = 0
-    while hn > 0 and k < max_new:
-        key, i, hn = _heap_pop(hk, hix, hn)
-        if not alive[i]:
-            continue
-        if f[i] < key:  # stale entry: reinsert with the current value
-            if f[i] >= r_min:
-                hn = _heap_push(hk, hix, hn, f[i], i)
-            else:
-                alive[i] = False
-            continue
+    while k < max_new:
+        i, hn = _pop_live(hk, hix, hn, f, alive, r_min)
+        if i < 0:
+            break
+        alive[i] = False
         r = f[i] * (1.0 - shrink)
         c = P[i]
         if ns > 0 and not _cover_seeds(c[0], c[1], c[2], r + cover, S, ckeys, cstart, cend, origin, g):
-            alive[i] = False  # every seed it reaches is covered already: it would close no gap
-            continue
+            continue  # every seed it reaches is covered already: it would close no gap
         C[k] = c
         R[k] = r
         k += 1
-        alive[i] = False
-        # lower f of every candidate within 2r (lattice box), drop the covered ones
-        reach = 2.0 * f[i]
-        lo0 = int(np.ceil((c[0] - reach - origin[0]) / h))
-        hi0 = int(np.floor((c[0] + reach - origin[0]) / h))
-        lo1 = int(np.ceil((c[1] - reach - origin[1]) / h))
-        hi1 = int(np.floor((c[1] + reach - origin[1]) / h))
-        lo2 = int(np.ceil((c[2] - reach - origin[2]) / h))
-        hi2 = int(np.floor((c[2] + reach - origin[2]) / h))
-        for a in range(max(lo0, 0), hi0 + 1):
-            for b in range(max(lo1, 0), hi1 + 1):
-                # the keys of one (a, b) row are contiguous in sorted order
-                base = (a << (2 * KEY_BITS)) | (b << KEY_BITS)
-                j0 = np.searchsorted(keys, base | max(lo2, 0))
-                j1 = np.searchsorted(keys, base | hi2, side="right")
-                for j in range(j0, j1):
-                    if not alive[j]:
-                        continue
-                    gap = np.sqrt((P[j, 0] - c[0]) ** 2 + (P[j, 1] - c[1]) ** 2 + (P[j, 2] - c[2]) ** 2) - r
-                    if gap < f[j]:
-                        f[j] = gap
-                        if gap < r_min:
-                            alive[j] = False
+        # candidates within r + f can have their free distance lowered (all others have
+        # f at most this one's, the heap's top)
+        _lower_free(P, f, alive, keys, origin, h, c[0], c[1], c[2], r, r + f[i], r_min)
     return C[:k].copy(), R[:k].copy()
 
 
@@ -523,13 +547,7 @@ def _climb(x0, y0, z0, cur, reach, iters, tol, V, F, OC, OR, ns, OT, nt, D, U, a
 def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, tleft, tright, tstart, tcount, torder,
                 PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, gorigin, g, gdims, iters, tol, reach_f, buf, S, ckeys, cstart, cg, cover):
     n = P.shape[0]
-    hk = np.empty(n + 1)
-    hix = np.empty(n + 1, np.int64)
-    hn = 0
-    for i in range(n):
-        if f[i] >= r_min:
-            hn = _heap_push(hk, hix, hn, f[i], i)
-    alive = f >= r_min
+    hk, hix, hn, alive = _heap_of(f, r_min)
     C = np.empty((min(n, max_new), 3))
     R = np.empty(min(n, max_new))
     head = np.full(gdims[0] * gdims[1] * gdims[2], -1, np.int64)
@@ -546,16 +564,10 @@ def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, t
     nseeds = S.shape[0]
     cend = cstart[1:].copy()
     k = 0
-    while hn > 0 and k < max_new:
-        key, i, hn = _heap_pop(hk, hix, hn)
-        if not alive[i]:
-            continue
-        if f[i] < key:  # stale entry: reinsert with the current value
-            if f[i] >= r_min:
-                hn = _heap_push(hk, hix, hn, f[i], i)
-            else:
-                alive[i] = False
-            continue
+    while k < max_new:
+        i, hn = _pop_live(hk, hix, hn, f, alive, r_min)
+        if i < 0:
+            break
         alive[i] = False
         x, y, z = P[i, 0], P[i, 1], P[i, 2]
         start = f[i]
@@ -583,26 +595,7 @@ def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, t
         k += 1
         # candidates within r + start can have their free distance lowered (all others have
         # f <= start, the heap's current top)
-        reach = r + start
-        lo0 = int(np.ceil((x - reach - origin[0]) / h))
-        hi0 = int(np.floor((x + reach - origin[0]) / h))
-        lo1 = int(np.ceil((y - reach - origin[1]) / h))
-        hi1 = int(np.floor((y + reach - origin[1]) / h))
-        lo2 = int(np.ceil((z - reach - origin[2]) / h))
-        hi2 = int(np.floor((z + reach - origin[2]) / h))
-        for a in range(max(lo0, 0), hi0 + 1):
-            for b in range(max(lo1, 0), hi1 + 1):
-                base = (a << (2 * KEY_BITS)) | (b << KEY_BITS)
-                j0 = np.searchsorted(keys, base | max(lo2, 0))
-                j1 = np.searchsorted(keys, base | hi2, side="right")
-                for j in range(j0, j1):
-                    if not alive[j]:
-                        continue
-                    gap = np.sqrt((P[j, 0] - x) ** 2 + (P[j, 1] - y) ** 2 + (P[j, 2] - z) ** 2) - r
-                    if gap < f[j]:
-                        f[j] = gap
-                        if gap < r_min:
-                            alive[j] = False
+        _lower_free(P, f, alive, keys, origin, h, x, y, z, r, r + start, r_min)
     return C[:k].copy(), R[:k].copy()
 
 
