@@ -52,7 +52,7 @@ STALL_H = 1.0 / 16.0
 # the deep interior, which no later level visits. CBCT mandible at 0.1 mm: 804 k -> 410 k leaves
 # for the same certified ε, coverage 71 -> 84 %.
 GROW = True
-LEVEL0_R_MIN = 0.125  # in level-0 spacings, with growth (0.5 without, or with min_coverage)
+LEVEL0_R_MIN = 0.125  # in level-0 spacings, with growth (0.5 without)
 FILL_BAND_WIDTH = 2.0  # around interior gap points (min_coverage): the gaps need the wider choice
 MAX_BAND_POINTS = 120_000_000  # band keys of one level (8 bytes each, ~3x that at the dilation's peak)
 BAND_CHUNK = 4_000_000  # band points decoded and evaluated at a time
