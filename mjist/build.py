@@ -17,7 +17,7 @@ from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
 # Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
-BUILDER_VERSION = 7
+BUILDER_VERSION = 8
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
 # Candidate band of each lattice level: cubes of half-width BAND_WIDTH around the centroids of the
@@ -37,6 +37,10 @@ COVER_MIN_H = 0.25
 # CERT_MIN_SIZE spacings, so that the loose bound of a coarse sub-triangle does not put spheres
 # where the gap is already small. CBCT mandible: 24 % fewer leaves, builds 10-20 % faster.
 CERT_MIN_SIZE = 0.25  # in lattice spacings
+# ...and one open for certain only down to BAD_SIZE spacings: its seed's band cube (BAND_WIDTH)
+# still meets its neighbours'. CBCT mandible at 0.1 mm: 1 -> 2 spacings, same leaves (406 k),
+# certification 14.8 -> 9.5 s; 4 spacings: 1.4 % more leaves (the cubes leave gaps).
+BAD_SIZE = 2.0  # in lattice spacings
 # A triangle whose certified gap has not shrunk by STALL_GAIN over STALL_LEVELS levels, on a
 # lattice finer than STALL_H times the target, is not going to close: no solid lies behind it that
 # a sphere could fill (the fin of a self-intersecting surface, whose two sides cross: CBCT maxilla,
@@ -231,7 +235,7 @@ def build(
         if len(R):
             ub_f, _, seeds, paths = certify_faces(
                 m.vertices, m.faces, open_faces, C, R, target, CERT_MIN_SIZE * h, want_seeds=True, bvh=sph_bvh,
-                seed_inset=SEED_INSET * h, prev=open_paths, bad_size=h,
+                seed_inset=SEED_INSET * h, prev=open_paths, bad_size=BAD_SIZE * h,
             )
             face_ub[open_faces] = ub_f
             stuck = (ub_f > target) & (ub_f > (1.0 - STALL_GAIN) * ub_before[-1][open_faces]) & (h <= STALL_H * target)

@@ -461,6 +461,44 @@ def sphere_gap_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, s
     return max(best, 0.0), bi
 
 
+@njit(cache=True)
+def spheres_near(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, out):
+    """Indices of the spheres whose gap from ``(px, py, pz)`` is below ``bound``, into ``out``.
+
+    Returns how many, or -1 as soon as one more is found than ``out`` holds (with an empty
+    ``out``: -1 when there is any, a test that stops at the first one).
+    """
+    b2 = bound * bound
+    n = 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if box_dist2(px, py, pz, lo, hi, node) >= b2:
+            continue
+        if left[node] < 0:
+            for i in range(start[node], start[node] + count[node]):
+                j = order[i]
+                if ball_gap(px, py, pz, C, R, j) < bound:
+                    if n == out.shape[0]:
+                        return -1
+                    out[n] = j
+                    n += 1
+            continue
+        stack[sp] = left[node]
+        stack[sp + 1] = right[node]
+        sp += 2
+    return n
+
+
+@njit(cache=True, inline="always")
+def sphere_within_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound):
+    """Is some sphere's gap from ``(px, py, pz)`` below ``bound``? (Stops at the first one: a
+    rejection test, cheaper than ``sphere_gap_xyz``'s nearest search.)"""
+    return spheres_near(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, stack[:0]) != 0
+
+
 @njit(cache=True, inline="always")
 def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
     """``sphere_gap_xyz`` at the point ``p (3,)``."""

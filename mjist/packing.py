@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import BVH, NO_SIDE, RAY_DIRS, STACK, ball_gap, box_dist2, closest_on_triangle, inside_near, sphere_gap, tri_closest
+from .bvh import (BVH, RAY_DIRS, STACK, ball_gap, box_dist2, closest_on_triangle, inside_near, sphere_gap,
+                  sphere_within_xyz, spheres_near, tri_closest)
 from .voxelize import KEY_BITS, KEY_MASK
 
 
@@ -236,27 +237,28 @@ def _band_free(P, V, F, side, tlo, thi, tleft, tright, tstart, tcount, torder, C
     f = np.empty(n)
     for i in prange(n):
         stack = np.empty(STACK, np.int64)
-        # surface first: a band point lies within a few spacings of it, so the triangle search is
-        # short, and the points too near it (a third of a band) need nothing else; then the
-        # inside test where its face's side is known (no ray: bvh.inside_near), which drops the
-        # outside third; the sphere search, bounded by the surface distance; the ray-cast inside
-        # test last, for the few candidates left whose closest point is on an edge or a crossed face.
+        # cheapest rejections first. A sphere within r_min (40 % of a fine level's band: the
+        # spheres of the levels before) is found by a search that stops at the first one; then
+        # the surface: the points too near it (15 %) and, by its closest face's side (no ray
+        # where the face is uncrossed: bvh.inside_near), those outside (35 %); only the
+        # candidates left (12 %) need their exact gap to the spheres. CBCT mandible, 0.1 mm,
+        # level 4: 3.0 -> 2.0 s for 4 M points against surface first, then spheres.
+        if R.shape[0] > 0 and sphere_within_xyz(P[i, 0], P[i, 1], P[i, 2], C, R, slo, shi, sleft, sright, sstart, scount,
+                                                sorder, stack, r_min):
+            f[i] = -1.0
+            continue
         d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, np.inf)
         d = np.sqrt(d2)
         if tf < 0 or d < r_min:
             f[i] = -1.0
             continue
-        known = interior and side[tf] != NO_SIDE
-        if known and not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
+        if not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
             f[i] = -1.0
             continue
         g = d
         if R.shape[0] > 0:
             g, _ = sphere_gap(P[i], C, R, slo, shi, sleft, sright, sstart, scount, sorder, stack, d)
-        if g < r_min or (not known and not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs)):
-            f[i] = -1.0
-            continue
-        f[i] = g
+        f[i] = g if g >= r_min else -1.0
     return f
 
 
@@ -288,6 +290,7 @@ GROW_ITERS = 12
 GROW_TOL = 0.01
 GROW_BUF = 256  # obstacles gathered per sphere at first (buffers double on demand)
 GROW_BUF_MAX = 1 << 16  # more than this: the sphere stays on its lattice point
+GROW_BATCH = 64  # candidates grown at once (in parallel; see _grown_pack)
 
 
 @njit(cache=True)
@@ -356,29 +359,18 @@ def _gather(x, y, z, bound, V, F, tlo, thi, tleft, tright, tstart, tcount, torde
                     OC[ns, 0], OC[ns, 1], OC[ns, 2] = C[j, 0], C[j, 1], C[j, 2]
                     OR[ns] = R[j]
                     ns += 1
-    # earlier spheres and triangles: BVH range searches
+    # earlier spheres and triangles: BVH range searches (the triangle buffer holds the
+    # spheres' indices first)
     b2 = bound * bound
     if PR.shape[0] > 0:
-        stack[0] = 0
-        sp = 1
-        while sp > 0:
-            sp -= 1
-            node = stack[sp]
-            if box_dist2(x, y, z, slo, shi, node) >= b2:
-                continue
-            if sleft[node] < 0:
-                for i in range(sstart[node], sstart[node] + scount[node]):
-                    j = sorder[i]
-                    if ball_gap(x, y, z, PC, PR, j) < bound:
-                        if ns == cap:
-                            return -1, -1
-                        OC[ns, 0], OC[ns, 1], OC[ns, 2] = PC[j, 0], PC[j, 1], PC[j, 2]
-                        OR[ns] = PR[j]
-                        ns += 1
-                continue
-            stack[sp] = sleft[node]
-            stack[sp + 1] = sright[node]
-            sp += 2
+        m = spheres_near(x, y, z, PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, stack, bound, OT[:cap - ns])
+        if m < 0:
+            return -1, -1
+        for q in range(m):
+            j = OT[q]
+            OC[ns, 0], OC[ns, 1], OC[ns, 2] = PC[j, 0], PC[j, 1], PC[j, 2]
+            OR[ns] = PR[j]
+            ns += 1
     stack[0] = 0
     sp = 1
     while sp > 0:
@@ -543,9 +535,54 @@ def _climb(x0, y0, z0, cur, reach, iters, tol, V, F, OC, OR, ns, OT, nt, D, U, a
     return x, y, z, _local_free(x, y, z, V, F, OC, OR, ns, OT, nt)
 
 
+@njit(cache=True, parallel=True)
+def _grow_batch(P, f, alive, keys, origin, h, r_min, shrink, members, nb, C, R, head, nxt, sid, gorigin, g, gdims, V, F, tlo,
+                thi, tleft, tright, tstart, tcount, torder, PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, iters, tol,
+                reach_f, buf, S, ckeys, cstart, cend, cg, cover, out):
+    """Grow the candidates ``members[:nb]`` at once: ``out[b] = x, y, z, r`` (r = -1 when the
+    sparse cover test drops it), and lower the free distance of the candidates around each.
+
+    Each member reads only the spheres placed before the batch and the mesh, and writes only
+    the candidates within ``(reach_f + 1) * f`` of its lattice point, which no other member's
+    region meets (see ``_grown_pack``): the threads share nothing they write.
+    """
+    nseeds = S.shape[0]
+    for b in prange(nb):
+        i = members[b]
+        x, y, z = P[i, 0], P[i, 1], P[i, 2]
+        start = f[i]
+        cur = start
+        alive[i] = False
+        if iters > 0:
+            stack = np.empty(STACK, np.int64)
+            cap = buf
+            while True:
+                OC = np.empty((cap, 3))
+                OR = np.empty(cap)
+                OT = np.empty(cap, np.int64)
+                ns, nt = _gather(x, y, z, reach_f * start, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C, R,
+                                 head, nxt, sid, gorigin, g, gdims, PC, PR, slo, shi, sleft, sright, sstart, scount, sorder,
+                                 stack, OC, OR, OT)
+                if ns >= 0 or cap >= GROW_BUF_MAX:
+                    break
+                cap *= 2  # a large sphere near a fine surface
+            if ns >= 0:  # else too crowded to gather: stays on its lattice point
+                x, y, z, cur = _climb(x, y, z, start, reach_f, iters, tol, V, F, OC, OR, ns, OT, nt,
+                                      np.empty(2 * cap), np.empty((2 * cap, 3)), np.empty(16, np.int64))
+        r = cur * (1.0 - shrink)
+        out[b, 0], out[b, 1], out[b, 2], out[b, 3] = x, y, z, r
+        if nseeds > 0 and not _cover_seeds(x, y, z, r + cover, S, ckeys, cstart, cend, origin, cg):
+            out[b, 3] = -1.0  # every seed it reaches is covered already: it would close no gap
+            continue
+        # the candidates within r + start can have their free distance lowered: all others
+        # have f <= start, except the ones held back from this batch (_grown_pack lowers those)
+        _lower_free(P, f, alive, keys, origin, h, x, y, z, r, r + start, r_min)
+
+
 @njit(cache=True)
 def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, tleft, tright, tstart, tcount, torder,
-                PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, gorigin, g, gdims, iters, tol, reach_f, buf, S, ckeys, cstart, cg, cover):
+                PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, gorigin, g, gdims, iters, tol, reach_f, buf, batch,
+                S, ckeys, cstart, cg, cover):
     n = P.shape[0]
     hk, hix, hn, alive = _heap_of(f, r_min)
     C = np.empty((min(n, max_new), 3))
@@ -554,48 +591,64 @@ def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, t
     nxt = np.empty(1024, np.int64)
     sid = np.empty(1024, np.int64)
     ne = 0
-    stack = np.empty(STACK, np.int64)
-    OC = np.empty((buf, 3))
-    OR = np.empty(buf)
-    OT = np.empty(buf, np.int64)
-    Dj = np.empty(2 * buf)
-    Uj = np.empty((2 * buf, 3))
-    act = np.empty(16, np.int64)
-    nseeds = S.shape[0]
+    members = np.empty(batch, np.int64)
+    held = np.empty(4 * batch, np.int64)
+    out = np.empty((batch, 4))
     cend = cstart[1:].copy()
+    sep = reach_f + 1.0
     k = 0
     while k < max_new:
-        i, hn = _pop_live(hk, hix, hn, f, alive, r_min)
-        if i < 0:
-            break
-        alive[i] = False
-        x, y, z = P[i, 0], P[i, 1], P[i, 2]
-        start = f[i]
-        cur = start
-        if iters > 0:
-            while True:
-                ns, nt = _gather(x, y, z, reach_f * start, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, C[:k],
-                                 R[:k], head, nxt, sid, gorigin, g, gdims, PC, PR, slo, shi, sleft, sright, sstart, scount,
-                                 sorder, stack, OC, OR, OT)
-                if ns >= 0 or OR.shape[0] >= GROW_BUF_MAX:
+        # The batch: the largest live candidates, in heap order, whose growth cannot meet. A
+        # sphere grown from i lies within reach_f * f[i] of P[i] (its centre moves at most
+        # (reach_f - 1) / 2 * f[i] and its radius grows at most as much) and lowers candidates
+        # within (reach_f + 1) * f[i]; candidate j looks for obstacles within reach_f * f[j].
+        # Candidates farther apart than (reach_f + 1) * (f[i] + f[j]) neither see each other's
+        # spheres nor touch each other's free distances, so growing them at once is growing
+        # them one by one in heap order. Nearer ones are held for a later batch.
+        nb = 0
+        nh = 0
+        while nb < min(batch, max_new - k) and nh < held.shape[0]:
+            i, hn = _pop_live(hk, hix, hn, f, alive, r_min)
+            if i < 0:
+                break
+            near = False
+            for q in range(nb):
+                j = members[q]
+                lim = sep * (f[i] + f[j])
+                if (P[i, 0] - P[j, 0]) ** 2 + (P[i, 1] - P[j, 1]) ** 2 + (P[i, 2] - P[j, 2]) ** 2 < lim * lim:
+                    near = True
                     break
-                OC = np.empty((2 * OR.shape[0], 3))  # a large sphere near a fine surface
-                OT = np.empty(2 * OR.shape[0], np.int64)
-                OR = np.empty(2 * OR.shape[0])
-                Dj = np.empty(2 * OR.shape[0])
-                Uj = np.empty((2 * OR.shape[0], 3))
-            if ns >= 0:  # else too crowded to gather: stays on its lattice point
-                x, y, z, cur = _climb(x, y, z, start, reach_f, iters, tol, V, F, OC, OR, ns, OT, nt, Dj, Uj, act)
-        r = cur * (1.0 - shrink)
-        if nseeds > 0 and not _cover_seeds(x, y, z, r + cover, S, ckeys, cstart, cend, origin, cg):
-            continue  # every seed it reaches is covered already: it would close no gap
-        C[k, 0], C[k, 1], C[k, 2] = x, y, z
-        R[k] = r
-        nxt, sid, ne = _grid_insert(k, x, y, z, r, head, nxt, sid, ne, gorigin, g, gdims)
-        k += 1
-        # candidates within r + start can have their free distance lowered (all others have
-        # f <= start, the heap's current top)
-        _lower_free(P, f, alive, keys, origin, h, x, y, z, r, r + start, r_min)
+            if near:
+                held[nh] = i
+                nh += 1
+            else:
+                members[nb] = i
+                nb += 1
+        if nb == 0:
+            break
+        _grow_batch(P, f, alive, keys, origin, h, r_min, shrink, members, nb, C[:k], R[:k], head, nxt, sid, gorigin, g,
+                    gdims, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, PC, PR, slo, shi, sleft, sright, sstart,
+                    scount, sorder, iters, tol, reach_f, buf, S, ckeys, cstart, cend, cg, cover, out)
+        for b in range(nb):
+            r = out[b, 3]
+            if r < 0.0:
+                continue
+            x, y, z = out[b, 0], out[b, 1], out[b, 2]
+            C[k, 0], C[k, 1], C[k, 2] = x, y, z
+            R[k] = r
+            nxt, sid, ne = _grid_insert(k, x, y, z, r, head, nxt, sid, ne, gorigin, g, gdims)
+            k += 1
+            for q in range(nh):  # held candidates may have f above this member's reach
+                j = held[q]
+                gap = np.sqrt((P[j, 0] - x) ** 2 + (P[j, 1] - y) ** 2 + (P[j, 2] - z) ** 2) - r
+                if gap < f[j]:
+                    f[j] = gap
+        for q in range(nh):  # back into the heap (or dropped: too little room left)
+            j = held[q]
+            if f[j] >= r_min:
+                hn = _heap_push(hk, hix, hn, f[j], j)
+            else:
+                alive[j] = False
     return C[:k].copy(), R[:k].copy()
 
 
@@ -611,6 +664,13 @@ def grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, vox, prior=None, s
     popped candidate's centre then climbs the free distance (see ``GROW_ITERS``) before its
     sphere is placed: a sphere touches three or four obstacles instead of one, so fewer, larger
     spheres fill the same solid.
+
+    Candidates grow in batches of up to ``GROW_BATCH``, in parallel: the largest ones whose
+    growth cannot meet (see ``_grown_pack``), so a batch gives the spheres that growing its
+    members one by one gives, and the result does not depend on the number of threads. A
+    candidate held back from a batch (too near a member) waits for the next one, behind
+    smaller members: the order is heap order up to these swaps. CBCT mandible at 0.1 mm,
+    2 cores: packing 12 -> 8 s, the same leaf count within 0.1 %.
 
     Parameters
     ----------
@@ -638,5 +698,5 @@ def grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, vox, prior=None, s
     return _grown_pack(
         np.ascontiguousarray(P), f, keys, origin, float(h), float(r_min), int(max_new), float(shrink), vox.V, vox.F,
         *vox.bvh.arrays, PC, PR, *sb.arrays, lo, g, gdims, int(GROW_ITERS if iters is None else iters),
-        float(GROW_TOL), float(GROW_REACH), int(GROW_BUF), *seeds,
+        float(GROW_TOL), float(GROW_REACH), int(GROW_BUF), int(GROW_BATCH), *seeds,
     )

@@ -11,8 +11,10 @@ crossings, retried when a ray grazes an edge or vertex); the distance from the B
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
-from numba import njit
+from numba import get_num_threads, njit
 
 from .bvh import BVH, RAY_DIRS, signed_distance
 from .selfintersect import crossed_faces, face_sides
@@ -43,7 +45,7 @@ def _seed_keys(seeds, origin, h, dims):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dilate_sorted(keys, axis, w, dims):
     """Every key shifted by -w..w along one axis (clipped to the lattice), sorted and unique.
 
@@ -88,6 +90,34 @@ def _dilate_sorted(keys, axis, w, dims):
         if i < n:
             val[bj] = keys[i] + o * step
     return out[:m].copy()  # a view would keep the (2w+1)x buffer alive
+
+
+def _dilate(keys, axis, w, dims, min_chunk=1_000_000):
+    """``_dilate_sorted`` in slabs of the first lattice axis, one thread per slab.
+
+    The keys sort by that axis first, so the slabs' results concatenate in order; a dilation
+    along it reads ``w`` layers beyond each slab and keeps only its own layers. (numba
+    releases the GIL in ``_dilate_sorted``: CBCT mandible 0.05 mm, 37 M band points.)
+    """
+    workers = min(get_num_threads(), len(keys) // min_chunk)
+    if workers < 2:
+        return _dilate_sorted(keys, axis, w, dims)
+    a = keys >> (2 * KEY_BITS)  # first-axis layer of each key (sorted)
+    cuts = np.unique(a[(np.arange(1, workers) * len(a)) // workers])
+    cuts = np.concatenate([[0], cuts[cuts > 0], [dims[0]]])
+    jobs = []
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        reach = w if axis == 0 else 0
+        i0, i1 = np.searchsorted(a, [lo - reach, hi + reach])
+        jobs.append((keys[i0:i1], np.int64(lo) << (2 * KEY_BITS), np.int64(hi) << (2 * KEY_BITS)))
+
+    def run(job):
+        part, klo, khi = job
+        out = _dilate_sorted(part, axis, w, dims)
+        return out[np.searchsorted(out, klo):np.searchsorted(out, khi)] if axis == 0 else out
+
+    with ThreadPoolExecutor(len(jobs)) as pool:
+        return np.concatenate(list(pool.map(run, jobs)))
 
 
 @njit(cache=True)
@@ -171,6 +201,6 @@ class Voxelizer:
             keys = np.unique(_seed_keys(np.ascontiguousarray(seeds, dtype=np.float64), self.origin, h, dims))
             # separable cube dilation, kept sorted and unique after each axis: memory ~ (2w+1) x the band
             for axis in range(3):
-                keys = _dilate_sorted(keys, axis, w, dims)
+                keys = _dilate(keys, axis, w, dims)
             out = keys if len(out) == 0 else np.union1d(out, keys)
         return out

@@ -163,6 +163,25 @@ def test_determinism_and_seed():
     assert np.array_equal(np.sort(a.leaf_radii), np.sort(c.leaf_radii))
 
 
+def test_same_tree_on_any_number_of_threads():
+    """Grown packing grows batches of candidates in parallel: a batch must give what growing
+    its members one by one gives, so the tree cannot depend on the thread count."""
+    import numba
+
+    mesh = torus()
+    n = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        a = mjist.build(mesh, max_error=0.02)
+    finally:
+        numba.set_num_threads(n)
+    b = mjist.build(mesh, max_error=0.02)
+    assert a.num_leaves > 1000  # enough spheres for many multi-member batches
+    for name in ("leaf_centers", "leaf_radii", "centers", "radii"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert a.error_bound == b.error_bound
+
+
 def test_interior_fill_raises_coverage():
     """min_coverage fills the gaps between the interior spheres: more volume, same surface bound."""
     plain = mjist.build(torus(), max_error=0.01)
