@@ -58,9 +58,14 @@ def coal_distance(bvh_a, pose_a, bvh_b, pose_b) -> float:
     return coal.distance(bvh_a, _tf(pose_a), bvh_b, _tf(pose_b), coal.DistanceRequest(), coal.DistanceResult())
 
 
-def coal_collides(bvh_a, pose_a, bvh_b, pose_b) -> bool:
+def coal_collides(bvh_a, pose_a, bvh_b, pose_b, tol: float | None = None) -> bool:
+    """coal's collision test; ``tol`` sets its GJK tolerance (default 1e-6: meshes closer than
+    about 1 µm count as touching)."""
+    req = coal.CollisionRequest()
+    if tol is not None:
+        req.gjk_tolerance = tol
     res = coal.CollisionResult()
-    coal.collide(bvh_a, _tf(pose_a), bvh_b, _tf(pose_b), coal.CollisionRequest(), res)
+    coal.collide(bvh_a, _tf(pose_a), bvh_b, _tf(pose_b), req, res)
     return res.isCollision()
 
 

@@ -209,33 +209,44 @@ def _hinge_turn(pos, quat, hinge, phi):
     return hinge + R.apply(np.asarray(pos) - hinge), np.array([w, x, y, z])
 
 
+POLISH_GJK_TOL = 1e-9  # coal's collision test in the polish (its default 1e-6 touches at ~1 µm)
+
+
 def _polish(model, gmd, Pmx, bvh, pos, quat, hinge, reach_deg: float = 2.0):
     """Turn the pose about the hinge to coal's first touch (to 1e-5°, ~10 nm at the incisors).
 
     The settled pose stops short of the true surfaces by about the inner spheres' surface gap
-    (the offset is a mean): the last bit of the closing path is taken with exact distances.
+    (the offset is a mean): the last bit of the closing path is taken with exact geometry.
+    Touch is coal's collision test (triangle against triangle), not its distance reaching
+    zero: on the CBCT pair coal's BVH distance can return 0 for meshes 0.04 mm apart (its
+    collision test and its own nearest points disagree), which stopped the bisection short.
+    Its GJK tolerance is tightened (``POLISH_GJK_TOL``): at coal's default, meshes 1 µm apart
+    already collide.
     Returns (pos, quat, turn in degrees, coal distance there).
     """
-    def dist(phi):
+    def pose(phi):
         p, q = _hinge_turn(pos, quat, hinge, phi)
-        return jawmod.coal_distance(bvh[0], Pmx, bvh[1], _geom_pose(model, gmd, p, q))
+        return _geom_pose(model, gmd, p, q)
+
+    def touches(phi):
+        return jawmod.coal_collides(bvh[0], Pmx, bvh[1], pose(phi), tol=POLISH_GJK_TOL)
 
     reach = np.radians(reach_deg)
-    d0 = dist(0.0)
+    t0 = touches(0.0)
     # closing turns by a negative angle (the scenes open by a positive one about +x)
-    apart, touching = (0.0, -reach) if d0 > 0 else (reach, 0.0)
-    if dist(apart) <= 0 or (d0 > 0 and dist(touching) > 0):
-        return pos, quat, 0.0, d0  # no crossing within reach: leave it
+    apart, touching = (reach, 0.0) if t0 else (0.0, -reach)
+    if touches(apart) or not touches(touching):
+        return pos, quat, 0.0, jawmod.coal_distance(bvh[0], Pmx, bvh[1], pose(0.0))  # no crossing within reach
     for _ in range(60):
         if abs(touching - apart) < np.radians(1e-5):
             break
         mid = 0.5 * (apart + touching)
-        if dist(mid) > 0:
-            apart = mid
-        else:
+        if touches(mid):
             touching = mid
+        else:
+            apart = mid
     p, q = _hinge_turn(pos, quat, hinge, apart)
-    return p, q, float(np.degrees(apart)), dist(apart)
+    return p, q, float(np.degrees(apart)), jawmod.coal_distance(bvh[0], Pmx, bvh[1], pose(apart))
 
 
 def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3, rotation_deg: float = 3.0,
