@@ -37,10 +37,12 @@ COVER_MIN_H = 0.25
 # CERT_MIN_SIZE spacings, so that the loose bound of a coarse sub-triangle does not put spheres
 # where the gap is already small. CBCT mandible: 24 % fewer leaves, builds 10-20 % faster.
 CERT_MIN_SIZE = 0.25  # in lattice spacings
-# ...and one open for certain only down to BAD_SIZE spacings: its seed's band cube (BAND_WIDTH)
-# still meets its neighbours'. CBCT mandible at 0.1 mm: 1 -> 2 spacings, same leaves (406 k),
-# certification 14.8 -> 9.5 s; 4 spacings: 1.4 % more leaves (the cubes leave gaps).
-BAD_SIZE = 2.0  # in lattice spacings
+# ...and one open for certain only down to BAD_SIZE spacings (its seed's band cube, BAND_WIDTH,
+# must meet its neighbours'). CBCT mandible at 0.1 mm: 2 spacings gave the same leaves (406 k)
+# with certification 14.8 -> 9.5 s, 4 spacings 1.4 % more leaves; kept at 1 because the
+# bundled haptic scene's hold settled into a 38 mN force chatter on the 2-spacing trees (the
+# penalty contacts' sensitivity to the sphere set, not the set's quality: see BENCHMARKS.md).
+BAD_SIZE = 1.0  # in lattice spacings
 # A triangle whose certified gap has not shrunk by STALL_GAIN over STALL_LEVELS levels, on a
 # lattice finer than STALL_H times the target, is not going to close: no solid lies behind it that
 # a sphere could fill (the fin of a self-intersecting surface, whose two sides cross: CBCT maxilla,

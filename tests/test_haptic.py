@@ -162,8 +162,11 @@ def test_hold_in_contact_for_60_seconds_is_stable(scene):
     v = np.linalg.norm(np.diff(log["mandible_pos"], axis=0), axis=1) / model.opt.timestep
     n = v.size
     first, last = v[n // 10:2 * n // 10].max(), v[-n // 10:].max()
-    assert last <= max(first, 1e-6)  # no growing oscillation: the tail moves no more than early on
-    assert last < 1e-3  # at rest (below 1 mm/s)
+    # no growing oscillation: the tail moves no more than early on (equal to rounding, as a
+    # periodic chatter between contact sets would, is not growing)
+    assert last <= max(first, 1e-6) * (1.0 + 1e-9)
+    assert last < 1e-3  # at rest (below 1 mm/s) ...
+    assert np.ptp(log["mandible_pos"][-n // 10:], axis=0).max() < 2e-6  # ... within 2 um
     Fc = log["coupling_force"]
     assert np.ptp(Fc[-n // 10:], axis=0).max() < 0.01  # the device force has settled (N)
 
