@@ -437,6 +437,19 @@ def _min_rate(U, act, na, dx, dy, dz):
     return m
 
 
+@njit(cache=True, inline="always")
+def _try_direction(U, act, na, dx, dy, dz, tiny, best, bx, by, bz):
+    """The better of the direction ``(dx, dy, dz)``, normalized (skipped if shorter than
+    ``tiny``), and the best so far ``(bx, by, bz)`` with rate ``best``."""
+    n = np.sqrt(dx * dx + dy * dy + dz * dz)
+    if n > tiny:
+        dx, dy, dz = dx / n, dy / n, dz / n
+        r = _min_rate(U, act, na, dx, dy, dz)
+        if r > best:
+            return r, dx, dy, dz
+    return best, bx, by, bz
+
+
 @njit(cache=True)
 def _ascent(U, act, na):
     """Unit direction that raises the distances to the active obstacles fastest (max-min rate).
@@ -452,13 +465,8 @@ def _ascent(U, act, na):
             best, bx, by, bz = r, U[j, 0], U[j, 1], U[j, 2]
         for b in range(a + 1, na):
             k = act[b]
-            sx, sy, sz = U[j, 0] + U[k, 0], U[j, 1] + U[k, 1], U[j, 2] + U[k, 2]
-            n = np.sqrt(sx * sx + sy * sy + sz * sz)
-            if n > 1e-9:
-                sx, sy, sz = sx / n, sy / n, sz / n
-                r = _min_rate(U, act, na, sx, sy, sz)
-                if r > best:
-                    best, bx, by, bz = r, sx, sy, sz
+            best, bx, by, bz = _try_direction(U, act, na, U[j, 0] + U[k, 0], U[j, 1] + U[k, 1], U[j, 2] + U[k, 2],
+                                              1e-9, best, bx, by, bz)
             for c in range(b + 1, na):
                 l = act[c]
                 # d with U_j.d = U_k.d = U_l.d = 1 (Cramer's rule), then normalized
@@ -472,12 +480,7 @@ def _ascent(U, act, na):
                 d0 = ((b1 * c2 - b2 * c1) + (c1 * a2 - c2 * a1) + (a1 * b2 - a2 * b1)) / det
                 d1 = ((b2 * c0 - b0 * c2) + (c2 * a0 - c0 * a2) + (a2 * b0 - a0 * b2)) / det
                 d2 = ((b0 * c1 - b1 * c0) + (c0 * a1 - c1 * a0) + (a0 * b1 - a1 * b0)) / det
-                n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                if n > 1e-12:
-                    d0, d1, d2 = d0 / n, d1 / n, d2 / n
-                    r = _min_rate(U, act, na, d0, d1, d2)
-                    if r > best:
-                        best, bx, by, bz = r, d0, d1, d2
+                best, bx, by, bz = _try_direction(U, act, na, d0, d1, d2, 1e-12, best, bx, by, bz)
     return bx, by, bz, best
 
 
