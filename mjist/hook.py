@@ -23,6 +23,8 @@ rollouts are deterministic whatever the threads. Nothing here raises; problems a
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import carray, cfunc, njit, types
 
@@ -141,10 +143,11 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
     thr = margin + offset
 
     # scratch layout (float64 words): Pa, Pb (16 each), xf (12), stack values, cand values,
-    # geom rows, dmin; then int64: stack pairs, candidates, chosen, pair, fallback state
+    # geom rows, dmin, fallback state, blend accumulator; then int64: stack pairs, candidates,
+    # chosen, pair, fallback state
     ns = E[E_STACK]
     nc = E[E_NCAND]
-    f = carray(abi.f64_ptr(scratch), 44 + ns + nc * 14 + FW)
+    f = carray(abi.f64_ptr(scratch), 44 + ns + nc * 14 + FW + tv.BLEND_W)
     Pa = f[0:16].reshape((4, 4))
     Pb = f[16:32].reshape((4, 4))
     xf = f[32:44]
@@ -154,7 +157,8 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
     dmin = f[o + nc:o + 2 * nc]
     geom = f[o + 2 * nc:o + 14 * nc].reshape((nc, 12))
     fs_local = f[o + 14 * nc:o + 14 * nc + FW]
-    iaddr = scratch + 8 * (44 + ns + nc * 14 + FW)
+    bacc = f[o + 14 * nc + FW:o + 14 * nc + FW + tv.BLEND_W]
+    iaddr = scratch + 8 * (44 + ns + nc * 14 + FW + tv.BLEND_W)
     iw = carray(abi.i64_ptr(iaddr), 2 * ns + 4 * nc + cap + 2 + IW)
     st = iw[0:2 * ns].reshape((ns, 2))
     cand = iw[2 * ns:2 * ns + 4 * nc].reshape((nc, 4))
@@ -294,6 +298,8 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
         i = chosen[j]
         g = geom[i]
         tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[E_NUP])  # robust to deep, thin overlaps
+        if E[E_NUP] > 0 and cval[i] < thr:
+            _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP], bacc, pair, g)
         row = out[j]
         row[0] = cval[i] - offset
         for r in range(3):
@@ -307,9 +313,25 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
     return k
 
 
+@njit(cache=True)
+def _blend_group(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair, g):
+    """Penalty mode: the group's normal and point (``g[0:3]``, ``g[9:12]``) become the means of
+    its leaf pairs below ``cut`` (``traverse.blend``), so its force turns continuously when
+    another spot of the group becomes the deepest. Left as they are if the means degenerate."""
+    code, _ = tv.blend(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair)
+    if code != tv.OK or not acc[0] > 0.0:
+        return
+    nn = math.sqrt(acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
+    if not nn > 1e-9 * acc[0]:  # opposite normals cancel: keep the deepest pair's
+        return
+    for r in range(3):
+        g[r] = acc[1 + r] / nn
+        g[9 + r] = acc[4 + r] / acc[0]
+
+
 @njit(cache=True, inline="always")
 def scratch_bytes(ns, nc, cap):
-    return 8 * (44 + ns + nc * 14 + FW) + 8 * (2 * ns + 4 * nc + cap + 2 + IW) + 64
+    return 8 * (44 + ns + nc * 14 + FW + tv.BLEND_W) + 8 * (2 * ns + 4 * nc + cap + 2 + IW) + 64
 
 
 PRIM_F = 50  # fixed float64 words of the primitive path's scratch

@@ -213,6 +213,7 @@ def _sort_desc(st, sv, base, sp):
 
 MIN = 0  # descend mode: minimum signed leaf-pair distance
 VOLUME = 1  # descend mode: accumulate lens volumes of all overlapping leaf pairs
+BLEND = 2  # descend mode: accumulate weighted normals and points of the leaf pairs below ``best``
 
 
 @njit(cache=True)
@@ -227,6 +228,9 @@ def descend(Na, Nb, xf, st, sv, base, sp, best, tol, pair, stop_at, visits, mode
 
     ``mode == VOLUME``: with ``best = 0, tol = 0``, visits every overlapping leaf pair and
     adds its lens to ``acc`` (see ``penetration``).
+
+    ``mode == BLEND``: with ``tol = 0``, visits every leaf pair below ``best`` and adds its
+    weighted normal and contact point to ``acc`` (see ``blend``).
 
     Returns ``(best, sp_after, visits)``; ``sp_after`` is ``-1`` if the stack would overflow
     (not possible with ``stack_size``). The child push is written out here rather than
@@ -245,6 +249,9 @@ def descend(Na, Nb, xf, st, sv, base, sp, best, tol, pair, stop_at, visits, mode
         if na == 0 and nb == 0:
             if mode == VOLUME:
                 _add_lens(Na, Nb, xf, a, b, acc)
+                continue
+            if mode == BLEND:
+                _add_blend(Na, Nb, xf, a, b, best, acc)
                 continue
             best = sv[sp]
             pair[0] = a
@@ -450,6 +457,54 @@ def contact_normal(Na, Nb, xf, a, b, out, min_climb=0):
         else:
             b = int(Nb[b, PAR])
         climbed += 1
+
+
+BLEND_W = 21  # words of ``blend``'s accumulator
+
+
+@njit(cache=True)
+def _add_blend(Na, Nb, xf, a, b, cut, acc):
+    """Add leaf pair ``(a, b)`` with weight ``cut - d`` (d its signed distance) to ``acc`` (see ``blend``)."""
+    g = acc[9:21]
+    w = cut - leaf_geometry(Na, Nb, xf, a, b, g)
+    if not w > 0.0:
+        return
+    px = g[9]
+    py = g[10]
+    pz = g[11]
+    contact_normal(Na, Nb, xf, a, b, g, int(acc[8]))
+    acc[0] += w
+    acc[1] += w * g[0]
+    acc[2] += w * g[1]
+    acc[3] += w * g[2]
+    acc[4] += w * px
+    acc[5] += w * py
+    acc[6] += w * pz
+    acc[7] += 1.0
+
+
+@njit(cache=True)
+def blend(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair):
+    """Weighted mean normal and contact point of the leaf pairs under ``(ga, gb)`` below ``cut``.
+
+    Each leaf pair at signed distance d < cut counts with weight ``cut - d`` (its normal from
+    ``contact_normal`` climbing at least ``climb`` levels, its point the middle of the common
+    chord). The weights are continuous in the pose and vanish as a pair leaves, so the means
+    are continuous too, where the deepest pair alone jumps when another pair becomes deepest.
+    With ``cut`` halfway between the deepest pair and the contact threshold, the means stay
+    near the deepest spot yet pass smoothly from one spot to the next.
+
+    ``acc`` (``BLEND_W``,) receives: total weight, ``Σ w n`` (A→B, 3), ``Σ w x`` (3, A's frame),
+    number of pairs; the rest is scratch. Returns ``(code, visits)``.
+    """
+    for k in range(8):
+        acc[k] = 0.0
+    acc[8] = climb
+    st[0, 0] = ga
+    st[0, 1] = gb
+    sv[0] = pair_value(Na, Nb, xf, ga, gb)
+    _, spx, visits = descend(Na, Nb, xf, st, sv, 0, 1, cut, 0.0, pair, -np.inf, 0, BLEND, acc)
+    return (OK if spx >= 0 else STACK_FULL), visits
 
 
 # --------------------------------------------------------------------------- multipoint

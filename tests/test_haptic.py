@@ -166,9 +166,12 @@ def test_hold_in_contact_for_60_seconds_is_stable(scene):
     # periodic chatter between contact sets would, is not growing)
     assert last <= max(first, 1e-6) * (1.0 + 1e-9)
     assert last < 1e-3  # at rest (below 1 mm/s) ...
-    assert np.ptp(log["mandible_pos"][-n // 10:], axis=0).max() < 2e-6  # ... within 2 um
+    # ... and still: the groups' blended normals and points make the force continuous in the
+    # pose, so the hold settles to an equilibrium (with the deepest pair's own normal it cycled
+    # at 91 Hz, 0.84 um, 38 mN, where that pair jumped between two spots of a group)
+    assert np.ptp(log["mandible_pos"][-n // 10:], axis=0).max() < 1e-8
     Fc = log["coupling_force"]
-    assert np.ptp(Fc[-n // 10:], axis=0).max() < 0.01  # the device force has settled (N)
+    assert np.ptp(Fc[-n // 10:], axis=0).max() < 1e-6  # the device force has settled (N)
 
 
 def test_hard_push_does_not_tunnel(scene):

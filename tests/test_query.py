@@ -276,6 +276,33 @@ def test_penetration_volume_is_exact_for_two_spheres_and_continuous():
     assert lens_volume(1.0, 0.6, 0.4) == pytest.approx(4 / 3 * np.pi * 0.6**3)  # continuous at containment
 
 
+def test_blended_contact_normal_turns_continuously_where_the_deepest_pair_jumps():
+    """Penalty groups use ``traverse.blend``: a ball rolling over two balls turns its normal smoothly."""
+    from mjist import traverse as tv
+
+    a = mjist.sphere_tree([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]], [1.0, 1.0])
+    b = mjist.sphere_tree([[0.0, 0.0, 0.0]], [1.0])
+    Na, Nb = tv.pack(a), tv.pack(b)
+    ns = tv.stack_size(Na, Nb)
+    st, sv = np.zeros((ns, 2), np.int64), np.zeros(ns)
+    acc, pair, g = np.zeros(tv.BLEND_W), np.zeros(2, np.int64), np.zeros(12)
+    xs = np.linspace(-0.5, 0.5, 1001)  # B's centre at (x, 0, 1.6): both pairs overlap, the deepest switches at 0
+    deepest, blended = [], []
+    for x in xs:
+        xf = np.array([1.0, 0, 0, 0, 1, 0, 0, 0, 1, x, 0.0, 1.6])
+        d = [tv.leaf_geometry(Na, Nb, xf, i, 0, g) for i in (1, 2)]  # the two leaves of A (nodes 1, 2)
+        tv.leaf_geometry(Na, Nb, xf, 1 + int(np.argmin(d)), 0, g)
+        deepest.append(g[:3].copy())
+        code, _ = tv.blend(Na, Nb, xf, st, sv, 0, 0, 0.5 * min(d), 0, acc, pair)
+        assert code == tv.OK and acc[7] >= 1
+        blended.append(acc[1:4] / np.linalg.norm(acc[1:4]))
+    step = lambda n: np.linalg.norm(np.diff(np.array(n), axis=0), axis=1).max()
+    assert step(deepest) > 0.5  # the deepest pair's normal flips from one ball to the other
+    assert step(blended) < 0.01  # the blend turns by about the step (1e-3) times its slope
+    assert np.allclose(blended[500], [0.0, 0.0, 1.0])  # symmetric: straight up above the middle
+    assert np.allclose(blended[0], deepest[0])  # one pair alone in the window: its own normal
+
+
 def test_penetration_volume_is_zero_apart_continuous_and_below_the_true_overlap():
     ma, ta, ba = shape("torus")
     mb, tb, bb = shape("bumpy")
