@@ -17,7 +17,7 @@ from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
 # Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
-BUILDER_VERSION = 8
+BUILDER_VERSION = 9
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
 # Candidate band of each lattice level: cubes of half-width BAND_WIDTH around the centroids of the
@@ -39,10 +39,8 @@ COVER_MIN_H = 0.25
 CERT_MIN_SIZE = 0.25  # in lattice spacings
 # ...and one open for certain only down to BAD_SIZE spacings (its seed's band cube, BAND_WIDTH,
 # must meet its neighbours'). CBCT mandible at 0.1 mm: 2 spacings gave the same leaves (406 k)
-# with certification 14.8 -> 9.5 s, 4 spacings 1.4 % more leaves; kept at 1 because the
-# bundled haptic scene's hold settled into a 38 mN force chatter on the 2-spacing trees (the
-# penalty contacts' sensitivity to the sphere set, not the set's quality: see BENCHMARKS.md).
-BAD_SIZE = 1.0  # in lattice spacings
+# with certification 14.8 -> 9.5 s, 4 spacings 1.4 % more leaves.
+BAD_SIZE = 2.0  # in lattice spacings
 # A triangle whose certified gap has not shrunk by STALL_GAIN over STALL_LEVELS levels, on a
 # lattice finer than STALL_H times the target, is not going to close: no solid lies behind it that
 # a sphere could fill (the fin of a self-intersecting surface, whose two sides cross: CBCT maxilla,
