@@ -23,11 +23,15 @@ Every triangle is split recursively into four; for a sub-triangle T with vertice
   region, whose boundary has such a corner point that no disk's interior holds). This
   certifies a sub-triangle that a hole between a few spheres spans, where the two bounds
   above only get there by splitting down to a fraction of the hole (CBCT mandible at
-  0.044 mm: 67 M → 17 M sub-triangles, 34 → 14 s).
+  0.044 mm: 67 M → 17 M sub-triangles, 34 → 14 s). When those six do not cover T, the test
+  runs again with every sphere whose grown ball reaches T (``_cover_all``); then it decides:
+  either T is covered, or a point of T lies farther than t from every sphere, so T is open
+  for certain, like a sub-triangle with a vertex gap above t.
 
 The smallest of these is T's bound ``UB(T)``; a sub-triangle is split again until
 ``UB(T) <= target`` or it is smaller than ``min_size`` (or than ``bad_size`` once a vertex
-gap above the target proves it open: splitting it further would only place its seeds finer). Across the builder's lattice
+gap above the target or the complete cover test proves it open: splitting it further would
+only place its seeds finer). Across the builder's lattice
 levels (same target, more spheres, smaller ``min_size``) each triangle's split is the same
 fixed quadtree, so a level walks only the sub-triangles that were still above the target at
 the previous one: the rest was certified then, and gaps only shrink as spheres are added
@@ -40,7 +44,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import BVH, STACK, ball_gap, face_normal, sphere_gap, sphere_gap_xyz
+from .bvh import BVH, STACK, ball_gap, face_normal, sphere_gap, sphere_gap_xyz, spheres_near
 
 SUB_STACK = 256
 SEED_BUF = 32  # bad sub-triangle centroids kept per triangle in the first pass
@@ -49,6 +53,11 @@ COVER_SPHERES = 6  # spheres tried by the disk-cover test: nearest to the vertic
 # (~1e-16 of the coordinates) can then never turn an uncovered point into a covered one.
 COVER_SHRINK = 1e-7
 COVER_MIN_SHAPE = 1e-6  # slivers (2 * area below this times the longest edge squared) are not tested
+# When that fails, the test runs again with every sphere whose grown ball reaches the sub-triangle
+# (up to COVER_ALL of them): then it decides, and a failure proves a point of T uncovered, so T is
+# open for certain and is split no finer than bad_size. CBCT maxilla at 0.05 mm: bound stage
+# 104 -> 73 s, 1 % fewer leaves, same ε.
+COVER_ALL = 64
 # A sub-triangle's place in its triangle's fixed midpoint quadtree, as a key: two bits per level
 # from the top, left-aligned to PATH_DEPTH levels, shifted left by DEPTH_BITS to hold the depth.
 # A sub-triangle's descendants are the keys in [path, path + 4**(PATH_DEPTH - depth)) << DEPTH_BITS;
@@ -111,6 +120,10 @@ def _balls_cover(ax, ay, az, bx, by, bz, cx, cy, cz, js, nj, C, R, t, D):
     vx, vy, vz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
     x2 = e2x * ux + e2y * uy + e2z * uz
     y2 = e2x * vx + e2y * vy + e2z * vz
+    # the triangle's box in the plane, a little wider: disks that miss it hold no point of the
+    # triangle and no crossing the test looks at, so they are left out (the test is cubic in them)
+    pad = 1e-6 * l1
+    x_lo, x_hi, y_hi = min(0.0, x2) - pad, max(l1, x2) + pad, y2 + pad
     k = 0
     for q in range(nj):
         j = js[q]
@@ -118,8 +131,14 @@ def _balls_cover(ax, ay, az, bx, by, bz, cx, cy, cz, js, nj, C, R, t, D):
         off = dx * nx + dy * ny + dz * nz
         rr = (R[j] + t) ** 2 - off * off
         if rr > 0.0:
-            D[k, 0] = dx * ux + dy * uy + dz * uz
-            D[k, 1] = dx * vx + dy * vy + dz * vz
+            px = dx * ux + dy * uy + dz * uz
+            py = dx * vx + dy * vy + dz * vz
+            ex = max(x_lo - px, 0.0, px - x_hi)
+            ey = max(-pad - py, 0.0, py - y_hi)
+            if ex * ex + ey * ey >= rr:
+                continue
+            D[k, 0] = px
+            D[k, 1] = py
             D[k, 2] = rr
             k += 1
     if k == 0:
@@ -232,6 +251,8 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
     PJ = np.full((SUB_STACK, 3), -1, np.int64)  # the parent's nearest spheres (for the cover test)
     js = np.empty(COVER_SPHERES, np.int64)
     D = np.empty((COVER_SPHERES, 3))
+    js_all = np.empty(COVER_ALL, np.int64)
+    D_all = np.empty((COVER_ALL, 3))
     KEY[0] = 0
     DEP[0] = 0
     n_prev = prev.shape[0]
@@ -267,11 +288,20 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
         cov = _cov(ax, ay, az, bx, by, bz, cx, cy, cz)
         lb_max = max(lb_max, g0, g1, g2)
         ub = _sub_ub(P, G, J, sp, cov, UBP[sp], C, R)
-        if ub > target and max(g0, g1, g2) <= target and _cover_test(P, J, PJ, sp, js, C, R, target, D):
-            ub = target
-        # a vertex gap above the target proves the sub-triangle bad: splitting it below bad_size only
-        # places its seeds finer; the uncertain ones (bound above, gaps below) go on to min_size
-        if ub <= target or cov <= min_size or (cov <= bad_size and max(g0, g1, g2) > target) or sp + 4 > SUB_STACK:
+        is_open = max(g0, g1, g2) > target  # a vertex gap above the target: open for certain
+        if ub > target and not is_open:
+            if _cover_test(P, J, PJ, sp, js, C, R, target, D):
+                ub = target
+            else:
+                n_all = _cover_all(ax, ay, az, bx, by, bz, cx, cy, cz, C, R, lo, hi, left, right, start, count, order,
+                                   stack, target, js_all, D_all)
+                if n_all == 1:
+                    ub = target
+                elif n_all == 0:
+                    is_open = True
+        # an open sub-triangle is split only down to bad_size (finer splits would only place its seeds
+        # finer); the uncertain ones (bound above the target, not proven open) go on to min_size
+        if ub <= target or cov <= min_size or (cov <= bad_size and is_open) or sp + 4 > SUB_STACK:
             ub_max = max(ub_max, ub)
             if ub > target:
                 if nbad < seeds.shape[0]:
@@ -323,6 +353,31 @@ def _cover_test(P, J, PJ, sp, js, C, R, target, D):
             nj += 1
     return _balls_cover(P[sp, 0, 0], P[sp, 0, 1], P[sp, 0, 2], P[sp, 1, 0], P[sp, 1, 1], P[sp, 1, 2],
                         P[sp, 2, 0], P[sp, 2, 1], P[sp, 2, 2], js, nj, C, R, target * (1.0 - COVER_SHRINK), D)
+
+
+@njit(cache=True)
+def _cover_all(ax, ay, az, bx, by, bz, cx, cy, cz, C, R, lo, hi, left, right, start, count, order, stack, target, js, D):
+    """``_balls_cover`` of the triangle by every sphere whose ball grown by ``target`` reaches it.
+
+    Returns 1 if covered, 0 if not (then some point of the triangle is farther than ``target``
+    from every sphere, up to the test's rounding margins), -1 if undecided (more spheres than
+    ``js`` holds, or a sliver, which ``_balls_cover`` does not test). The spheres are those within ``target`` of the ball around the centroid
+    through the farthest vertex, a superset of those whose grown balls meet the triangle.
+    """
+    e1x, e1y, e1z, e2x, e2y, e2z = bx - ax, by - ay, bz - az, cx - ax, cy - ay, cz - az
+    nn = np.sqrt((e1y * e2z - e1z * e2y) ** 2 + (e1z * e2x - e1x * e2z) ** 2 + (e1x * e2y - e1y * e2x) ** 2)
+    if nn <= COVER_MIN_SHAPE * max(e1x * e1x + e1y * e1y + e1z * e1z, e2x * e2x + e2y * e2y + e2z * e2z,
+                                   (cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2):
+        return -1  # a sliver: _balls_cover does not test it
+    mx, my, mz = (ax + bx + cx) / 3.0, (ay + by + cy) / 3.0, (az + bz + cz) / 3.0
+    rho = np.sqrt(max((ax - mx) ** 2 + (ay - my) ** 2 + (az - mz) ** 2, (bx - mx) ** 2 + (by - my) ** 2 + (bz - mz) ** 2,
+                      (cx - mx) ** 2 + (cy - my) ** 2 + (cz - mz) ** 2))
+    n = spheres_near(mx, my, mz, C, R, lo, hi, left, right, start, count, order, stack, rho + target, js)
+    if n < 0:
+        return -1
+    if n > 0 and _balls_cover(ax, ay, az, bx, by, bz, cx, cy, cz, js, n, C, R, target * (1.0 - COVER_SHRINK), D):
+        return 1
+    return 0
 
 
 @njit(cache=True, inline="always")
