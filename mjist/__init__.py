@@ -11,11 +11,15 @@ error bound (true distance ∈ [distance - error_bound, distance]).
 MuJoCo: ``model, handle = mjist.load_model("scene.xml")`` (or ``mjist.attach(model)``) makes
 plain ``mujoco.mj_step`` use IST contacts for the model's mesh geom pairs.
 """
-from .build import build, sphere_tree
-from .errors import ConfigError, MeshError, TreeFileError
-from .mesh import Mesh, load_mesh
-from .query import ContactResult, DistanceResult, PenetrationResult, Query
-from .tree import FORMAT_VERSION, InnerSphereTree, load_tree
+from . import jitcache
+
+jitcache.check()  # before any kernel loads: a cache built from other sources is stale
+
+from .build import build, sphere_tree  # noqa: E402
+from .errors import ConfigError, MeshError, TreeFileError  # noqa: E402
+from .mesh import Mesh, load_mesh  # noqa: E402
+from .query import ContactResult, DistanceResult, PenetrationResult, Query  # noqa: E402
+from .tree import FORMAT_VERSION, InnerSphereTree, load_tree  # noqa: E402
 
 __all__ = [
     "attach",

@@ -1,0 +1,38 @@
+"""numba's cache is dropped when any source of the package changes (``mjist.jitcache``)."""
+from mjist import jitcache
+
+
+def test_cache_is_dropped_when_a_source_changes_and_kept_otherwise(tmp_path):
+    (tmp_path / "hook.py").write_text("x = 1\n")
+    (tmp_path / "forces.py").write_text("y = 2\n")
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+
+    def numba_files():
+        return sorted(p.name for p in cache.iterdir() if p.suffix in (".nbi", ".nbc"))
+
+    def compile_something():
+        for name in ("forces._penalty-1.py311.nbi", "forces._penalty-1.py311.1.nbc"):
+            (cache / name).write_bytes(b"cached")
+
+    compile_something()
+    (cache / "forces.cpython-311.pyc").write_bytes(b"bytecode")
+    assert jitcache.check(tmp_path)  # no stamp yet: who knows what these were built from
+    assert numba_files() == [] and (cache / "forces.cpython-311.pyc").exists()
+    compile_something()
+    assert not jitcache.check(tmp_path)  # same sources: the cache stays
+    assert len(numba_files()) == 2
+    (tmp_path / "hook.py").write_text("x = 3\n")  # another module than the cached kernel's
+    assert jitcache.check(tmp_path)
+    assert numba_files() == []
+    assert not jitcache.check(tmp_path)
+
+
+def test_the_package_stamp_matches_its_sources():
+    from pathlib import Path
+
+    import mjist
+
+    pkg = Path(mjist.__file__).parent
+    stamp = pkg / "__pycache__" / jitcache.STAMP
+    assert stamp.read_text() == jitcache.sources_digest(pkg)
