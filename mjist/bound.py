@@ -551,25 +551,33 @@ def _copy_segments(src, src_start, dst, dst_start, length):
             dst[dst_start[i] + k] = src[src_start[i] + k]
 
 
-def tight_bound(V, F, C, R, rel_tol: float = 0.05, bvh: BVH | None = None, known: float = np.inf):
+def tight_bound(V, F, C, R, rel_tol: float = 0.05, bvh: BVH | None = None, known: float = np.inf, face_ub=None):
     """The certified ε, refined until it is within ``rel_tol`` of its own lower bound.
 
     ``known`` is a bound certified earlier for a subset of these spheres (still valid:
     adding spheres only shrinks gaps); every certificate is an upper bound, so the
-    smallest one is returned. Returns ``(eps, lower)``: ``lower <= true gap <= eps``.
+    smallest one is returned. ``face_ub`` (one per triangle), likewise certified earlier:
+    a refinement walks only the triangles whose bound is above its target (the builder's
+    levels leave all but the open ones at or below ``max_error``). Returns ``(eps, lower)``:
+    ``lower <= true gap <= eps``.
     """
     if bvh is None:
         bvh = BVH.of_spheres(C, R)
     scale = float(np.linalg.norm(V.max(0) - V.min(0)))
-    ub, lb, _ = certify(V, F, C, R, target=np.inf, min_size=np.inf, bvh=bvh)
-    best = min(ub, known)
+    ub_f, lb_f, _, _ = certify_faces(V, F, np.arange(len(F), dtype=np.int64), C, R, np.inf, np.inf, bvh=bvh)
+    if face_ub is not None:
+        ub_f = np.minimum(ub_f, face_ub)
+    lb = float(lb_f.max())
+    best = min(float(ub_f.max()), known)
     for _ in range(6):
         if best <= lb * (1.0 + rel_tol) + 1e-12 * scale:  # already tight (often: the vertices' own gaps)
             break
         target = max(lb * (1.0 + rel_tol), 1e-9 * scale)
-        ub, lb2, _ = certify(V, F, C, R, target=target, min_size=target * rel_tol * 0.5, bvh=bvh)
-        lb = max(lb, lb2)
-        best = min(best, ub)
+        walk = np.flatnonzero(ub_f > target)  # the others are certified at or below it already
+        ub_w, lb_w, _, _ = certify_faces(V, F, walk, C, R, target, target * rel_tol * 0.5, bvh=bvh)
+        ub_f[walk] = np.minimum(ub_f[walk], ub_w)
+        lb = max(lb, float(lb_w.max()))
+        best = min(best, float(ub_f.max()))
     return best, lb
 
 

@@ -346,7 +346,7 @@ def build(
     # once the target is certified, tightening ε below it needs less: where the gap is flat
     # near its maximum (many grown spheres hugging a coarse surface) a 5 % walk can take minutes
     rel = TIGHT_REL_MET if certified <= target else TIGHT_REL
-    eps, eps_lo = tight_bound(m.vertices, m.faces, C, R, rel_tol=rel, known=certified, bvh=leaf_bvh)
+    eps, eps_lo = tight_bound(m.vertices, m.faces, C, R, rel_tol=rel, known=certified, bvh=leaf_bvh, face_ub=face_ub)
     mean_gap = float(surface_gaps(m.vertices, m.faces, C, R, seed=int(seed), bvh=leaf_bvh).mean())
     timings["bound"] = time.perf_counter() - t + t_cert
     timings["total"] = time.perf_counter() - t0
