@@ -299,7 +299,8 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
         g = geom[i]
         tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[E_NUP])  # robust to deep, thin overlaps
         if E[E_NUP] > 0 and cval[i] < thr:
-            _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP], bacc, pair, g)
+            count[C_VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP],
+                                            bacc, pair, g)
         row = out[j]
         row[0] = cval[i] - offset
         for r in range(3):
@@ -317,16 +318,18 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
 def _blend_group(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair, g):
     """Penalty mode: the group's normal and point (``g[0:3]``, ``g[9:12]``) become the means of
     its leaf pairs below ``cut`` (``traverse.blend``), so its force turns continuously when
-    another spot of the group becomes the deepest. Left as they are if the means degenerate."""
-    code, _ = tv.blend(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair)
+    another spot of the group becomes the deepest. Left as they are if the means degenerate.
+    Returns the node pairs visited."""
+    code, visits = tv.blend(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair)
     if code != tv.OK or not acc[0] > 0.0:
-        return
+        return visits
     nn = math.sqrt(acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
     if not nn > 1e-9 * acc[0]:  # opposite normals cancel: keep the deepest pair's
-        return
+        return visits
     for r in range(3):
         g[r] = acc[1 + r] / nn
         g[9 + r] = acc[4 + r] / acc[0]
+    return visits
 
 
 @njit(cache=True, inline="always")
