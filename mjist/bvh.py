@@ -10,8 +10,10 @@ Layout (structure of arrays, node 0 is the root):
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 LEAF_SIZE = 4
 STACK = 128  # depth bound: median splits give depth ~log2(n/LEAF_SIZE) < 40
@@ -50,56 +52,55 @@ def _select(order, cen, axis, a, b, k):
 
 
 @njit(cache=True)
-def build_bvh(prim_lo, prim_hi):
-    """Median-split BVH over axis-aligned boxes ``prim_lo, prim_hi (n, 3)``."""
-    n = prim_lo.shape[0]
-    m_max = max(1, 2 * n)
-    lo = np.empty((m_max, 3))
-    hi = np.empty((m_max, 3))
-    left = np.full(m_max, -1, np.int64)
-    right = np.full(m_max, -1, np.int64)
-    start = np.zeros(m_max, np.int64)
-    count = np.zeros(m_max, np.int64)
-    order = np.arange(n)
-    cen = 0.5 * (prim_lo + prim_hi)
+def _split(prim_lo, prim_hi, cen, order, lo, hi, start, count, node, a, b):
+    """Box of ``node`` over ``order[a:b]``; a leaf (returns -1) or split at the median of its
+    centres' widest axis (``order[a:b]`` partitioned, returns the split index)."""
+    for k in range(3):
+        lo[node, k] = np.inf
+        hi[node, k] = -np.inf
+    c0 = c1 = c2 = np.inf
+    d0 = d1 = d2 = -np.inf
+    for i in range(a, b):
+        j = order[i]
+        for k in range(3):
+            lo[node, k] = min(lo[node, k], prim_lo[j, k])
+            hi[node, k] = max(hi[node, k], prim_hi[j, k])
+        c0, d0 = min(c0, cen[j, 0]), max(d0, cen[j, 0])
+        c1, d1 = min(c1, cen[j, 1]), max(d1, cen[j, 1])
+        c2, d2 = min(c2, cen[j, 2]), max(d2, cen[j, 2])
+    if b - a <= LEAF_SIZE:
+        start[node] = a
+        count[node] = b - a
+        return -1
+    axis = 0
+    if d1 - c1 > d0 - c0:
+        axis = 1
+    if d2 - c2 > max(d0 - c0, d1 - c1):
+        axis = 2
+    mid = (a + b) // 2
+    _select(order, cen, axis, a, b, mid)
+    return mid
+
+
+@njit(cache=True)
+def _build_subtree(prim_lo, prim_hi, cen, order, lo, hi, left, right, start, count, node, a, b, m):
+    """The subtree of ``node`` over ``order[a:b]``, depth first, its new nodes numbered from ``m``
+    (children ``m, m + 1``; the right one is built first, so its descendants come next)."""
     st_node = np.empty(STACK, np.int64)
     st_a = np.empty(STACK, np.int64)
     st_b = np.empty(STACK, np.int64)
-    sp = 0
-    st_node[0] = 0
-    st_a[0] = 0
-    st_b[0] = n
+    st_node[0] = node
+    st_a[0] = a
+    st_b[0] = b
     sp = 1
-    m = 1
     while sp > 0:
         sp -= 1
         node = st_node[sp]
         a = st_a[sp]
         b = st_b[sp]
-        for k in range(3):
-            lo[node, k] = np.inf
-            hi[node, k] = -np.inf
-        clo = np.full(3, np.inf)
-        chi = np.full(3, -np.inf)
-        for i in range(a, b):
-            j = order[i]
-            for k in range(3):
-                lo[node, k] = min(lo[node, k], prim_lo[j, k])
-                hi[node, k] = max(hi[node, k], prim_hi[j, k])
-                clo[k] = min(clo[k], cen[j, k])
-                chi[k] = max(chi[k], cen[j, k])
-        if b - a <= LEAF_SIZE:
-            start[node] = a
-            count[node] = b - a
+        mid = _split(prim_lo, prim_hi, cen, order, lo, hi, start, count, node, a, b)
+        if mid < 0:
             continue
-        axis = 0
-        ext = chi - clo
-        if ext[1] > ext[axis]:
-            axis = 1
-        if ext[2] > ext[axis]:
-            axis = 2
-        mid = (a + b) // 2
-        _select(order, cen, axis, a, b, mid)
         left[node] = m
         right[node] = m + 1
         st_node[sp] = m
@@ -110,6 +111,66 @@ def build_bvh(prim_lo, prim_hi):
         st_b[sp + 1] = b
         sp += 2
         m += 2
+
+
+@njit(cache=True, parallel=True)
+def _split_many(prim_lo, prim_hi, cen, order, lo, hi, start, count, tn, ta, tb):
+    mids = np.empty(tn.shape[0], np.int64)
+    for t in prange(tn.shape[0]):
+        mids[t] = _split(prim_lo, prim_hi, cen, order, lo, hi, start, count, tn[t], ta[t], tb[t])
+    return mids
+
+
+@njit(cache=True, parallel=True)
+def _build_many(prim_lo, prim_hi, cen, order, lo, hi, left, right, start, count, tn, ta, tb, tm):
+    for t in prange(tn.shape[0]):
+        _build_subtree(prim_lo, prim_hi, cen, order, lo, hi, left, right, start, count, tn[t], ta[t], tb[t], tm[t])
+
+
+@lru_cache(maxsize=None)
+def _leaves(c: int) -> int:
+    """Leaves of the median-split subtree over ``c`` primitives (its shape depends on c only)."""
+    return 1 if c <= LEAF_SIZE else _leaves(c // 2) + _leaves(c - c // 2)
+
+
+PARALLEL_MIN = 50_000  # primitives per subtree worth a task of its own
+
+
+def build_bvh(prim_lo, prim_hi):
+    """Median-split BVH over axis-aligned boxes ``prim_lo, prim_hi (n, 3)``.
+
+    Node ids are those of a depth-first build (children ``m, m + 1`` of a node, the right
+    subtree numbered first). Every subtree's shape, hence its id range, depends only on its
+    primitive count, so the top nodes are split level by level and the subtrees below them
+    built at once, one thread each: the same arrays as one thread builds, ~2x faster on 2 cores.
+    """
+    n = prim_lo.shape[0]
+    m_max = max(1, 2 * n)
+    lo = np.empty((m_max, 3))
+    hi = np.empty((m_max, 3))
+    left = np.full(m_max, -1, np.int64)
+    right = np.full(m_max, -1, np.int64)
+    start = np.zeros(m_max, np.int64)
+    count = np.zeros(m_max, np.int64)
+    order = np.arange(n)
+    cen = 0.5 * (prim_lo + prim_hi)
+    args = (prim_lo, prim_hi, cen, order, lo, hi)
+    tasks = [(0, 0, n, 1)]  # (node, a, b, first free id when it is built)
+    while len(tasks) < 4 * get_num_threads() and tasks[0][2] - tasks[0][1] >= 2 * PARALLEL_MIN:
+        tn, ta, tb, tm = (np.array(col, np.int64) for col in zip(*tasks))
+        mids = _split_many(*args, start, count, tn, ta, tb)
+        nxt = []
+        for (node, a, b, m), mid in zip(tasks, mids):
+            if mid < 0:
+                continue
+            left[node], right[node] = m, m + 1
+            nxt.append((m, a, mid, m + 2 + 2 * _leaves(b - mid) - 2))  # after the right subtree
+            nxt.append((m + 1, mid, b, m + 2))
+        tasks = nxt
+    if tasks:
+        tn, ta, tb, tm = (np.array(col, np.int64) for col in zip(*tasks))
+        _build_many(*args, left, right, start, count, tn, ta, tb, tm)
+    m = 2 * _leaves(n) - 1
     return lo[:m].copy(), hi[:m].copy(), left[:m].copy(), right[:m].copy(), start[:m].copy(), count[:m].copy(), order
 
 

@@ -346,6 +346,37 @@ def test_band_dilation_matches_sort_unique():
             assert np.array_equal(_dilate_sorted(keys, axis, w, dims), ref)
 
 
+@pytest.mark.parametrize("n", [0, 3, 1000, 4097, 9001])
+def test_bvh_split_across_threads_equals_one_depth_first_build(monkeypatch, n):
+    """The BVH's top levels are split level by level and its subtrees built in parallel, each
+    numbering its nodes from where a one-thread depth-first build would: same arrays, and a
+    valid hierarchy (every primitive in one leaf, every box around its children's)."""
+    from mjist import bvh as B
+
+    monkeypatch.setattr(B, "PARALLEL_MIN", 100)  # several levels of tasks at these sizes
+    rng = np.random.default_rng(n)
+    c = rng.random((n, 3)) * [1.0, 3.0, 0.2]
+    r = 0.01 * rng.random(n)
+    lo, hi = c - r[:, None], c + r[:, None]
+    got = B.build_bvh(lo, hi)
+    m = max(1, 2 * n)
+    ref = [np.empty((m, 3)), np.empty((m, 3)), np.full(m, -1), np.full(m, -1), np.zeros(m, np.int64), np.zeros(m, np.int64)]
+    order = np.arange(n)
+    B._build_subtree(lo, hi, 0.5 * (lo + hi), order, ref[0], ref[1], ref[2], ref[3], ref[4], ref[5], 0, 0, n, 1)
+    k = len(got[0])
+    for a, b in zip(got, [x[:k] for x in ref] + [order]):
+        assert np.array_equal(a, b)
+    nlo, nhi, left, right, start, count, perm = got
+    leaf = left < 0
+    assert np.array_equal(np.sort(perm), np.arange(n)) and count[leaf].sum() == n
+    assert (left[~leaf] > 0).all() and len(np.unique(np.concatenate([left[~leaf], right[~leaf]]))) == k - 1
+    for ch in (left[~leaf], right[~leaf]):
+        assert (nlo[ch] >= nlo[~leaf]).all() and (nhi[ch] <= nhi[~leaf]).all()
+    for node in np.flatnonzero(leaf):
+        js = perm[start[node]:start[node] + count[node]]
+        assert (lo[js] >= nlo[node]).all() and (hi[js] <= nhi[node]).all()
+
+
 def test_cover_test_removes_exactly_the_seeds_in_reach():
     """packing._cover_seeds against brute force: each call reports whether any live seed lay
     within reach, and a removed seed is never reported again (seed order inside cells changes)."""
