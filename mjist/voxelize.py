@@ -120,6 +120,18 @@ def _dilate(keys, axis, w, dims, min_chunk=1_000_000):
         return np.concatenate(list(pool.map(run, jobs)))
 
 
+def sorted_unique(keys):
+    """``np.unique`` of int64 keys by a radix sort: numpy >= 2.3's ``np.unique`` goes through a
+    hash table first, 5.2 s against 0.25 s here for 5.4 M lattice keys (CBCT mandible, level 5)."""
+    keys = np.sort(keys, kind="stable")  # radix sort for integers
+    if len(keys) < 2:
+        return keys
+    keep = np.empty(len(keys), bool)
+    keep[0] = True
+    np.not_equal(keys[1:], keys[:-1], out=keep[1:])
+    return keys[keep]
+
+
 @njit(cache=True)
 def decode(keys, origin, h):
     n = keys.shape[0]
@@ -198,9 +210,9 @@ class Voxelizer:
             if len(seeds) == 0:
                 continue
             w = int(np.ceil(half_width / h - 1e-9))
-            keys = np.unique(_seed_keys(np.ascontiguousarray(seeds, dtype=np.float64), self.origin, h, dims))
+            keys = sorted_unique(_seed_keys(np.ascontiguousarray(seeds, dtype=np.float64), self.origin, h, dims))
             # separable cube dilation, kept sorted and unique after each axis: memory ~ (2w+1) x the band
             for axis in range(3):
                 keys = _dilate(keys, axis, w, dims)
-            out = keys if len(out) == 0 else np.union1d(out, keys)
+            out = keys if len(out) == 0 else sorted_unique(np.concatenate([out, keys]))
         return out

@@ -377,6 +377,15 @@ def test_bvh_split_across_threads_equals_one_depth_first_build(monkeypatch, n):
         assert (lo[js] >= nlo[node]).all() and (hi[js] <= nhi[node]).all()
 
 
+def test_sorted_unique_is_np_unique():
+    from mjist.voxelize import sorted_unique
+
+    rng = np.random.default_rng(2)
+    for a in (np.empty(0, np.int64), np.array([7]), np.array([5, 1, 5, 2, 1, 9]), rng.integers(-(1 << 62), 1 << 62, 5000),
+              rng.integers(0, 300, 20000)):
+        assert np.array_equal(sorted_unique(a.astype(np.int64)), np.unique(a))
+
+
 def test_cover_test_removes_exactly_the_seeds_in_reach():
     """packing._cover_seeds against brute force: each call reports whether any live seed lay
     within reach, and a removed seed is never reported again (seed order inside cells changes)."""
