@@ -14,7 +14,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from numba import get_num_threads, njit
+from numba import get_num_threads, njit, prange
 
 from .bvh import BVH, RAY_DIRS, signed_distance
 from .selfintersect import crossed_faces, face_sides
@@ -132,6 +132,160 @@ def sorted_unique(keys):
     return keys[keep]
 
 
+# --- oriented band: the inner half of each seed's cube ----------------------------------------
+#
+# A seed lies ``depth`` behind the surface; a new sphere needs a centre at least r_min (half a
+# spacing) behind it. Of a seed's cube, the points in front of its tangent plane are outside the
+# solid or too near the surface, and the band's free-distance search rejected them one by one
+# (half of a fine level's band: 36.6 -> 21.0 M points at the CBCT mandible's level 5 at 0.05 mm,
+# 5 of its 4.56 M candidates lost). Where the solid is convex the tangent plane is farther than
+# the surface, so a point behind the plane by r_min may still be too near, never the reverse;
+# where it is concave ``min_depth`` below r_min leaves room for the surface bending away.
+
+
+@njit(cache=True, inline="always")
+def _plane_keep(S, N, s, origin, h, a, b, c, depth, min_depth):
+    if N[s, 0] == 0.0 and N[s, 1] == 0.0 and N[s, 2] == 0.0:  # no side known: the whole cube
+        return True
+    return (depth + (origin[0] + a * h - S[s, 0]) * N[s, 0] + (origin[1] + b * h - S[s, 1]) * N[s, 1]
+            + (origin[2] + c * h - S[s, 2]) * N[s, 2]) >= min_depth
+
+
+@njit(cache=True, parallel=True)
+def _oriented_counts(S, N, origin, h, dims, w, depth, min_depth, base, cnt):
+    """Per seed: its lattice point ``base`` and how many kept points of its cube lie in each of
+    the ``2w + 1`` first-axis layers ``cnt``."""
+    for s in prange(S.shape[0]):
+        for d in range(3):
+            base[s, d] = min(max(int(np.floor((S[s, d] - origin[d]) / h + 0.5)), 0), dims[d] - 1)
+        for i in range(2 * w + 1):
+            a = base[s, 0] + i - w
+            k = 0
+            if 0 <= a < dims[0]:
+                for b in range(max(base[s, 1] - w, 0), min(base[s, 1] + w + 1, dims[1])):
+                    for c in range(max(base[s, 2] - w, 0), min(base[s, 2] + w + 1, dims[2])):
+                        if _plane_keep(S, N, s, origin, h, a, b, c, depth, min_depth):
+                            k += 1
+            cnt[s, i] = k
+
+
+@njit(cache=True)
+def _layer_slots(base, cnt, w, n_layers):
+    """Bucket the kept points by first-axis layer: each layer's start, each seed's write position per layer."""
+    layer_n = np.zeros(n_layers + 1, np.int64)
+    for s in range(base.shape[0]):
+        for i in range(2 * w + 1):
+            if cnt[s, i]:
+                layer_n[base[s, 0] + i - w + 1] += cnt[s, i]
+    for l in range(n_layers):
+        layer_n[l + 1] += layer_n[l]
+    fill = layer_n[:-1].copy()
+    pos = np.empty_like(cnt)
+    for s in range(base.shape[0]):
+        for i in range(2 * w + 1):
+            if cnt[s, i]:
+                a = base[s, 0] + i - w
+                pos[s, i] = fill[a]
+                fill[a] += cnt[s, i]
+    return layer_n, pos
+
+
+@njit(cache=True, parallel=True)
+def _oriented_emit(S, N, origin, h, dims, w, depth, min_depth, base, cnt, pos, out):
+    for s in prange(S.shape[0]):
+        for i in range(2 * w + 1):
+            if cnt[s, i] == 0:
+                continue
+            a = base[s, 0] + i - w
+            q = pos[s, i]
+            for b in range(max(base[s, 1] - w, 0), min(base[s, 1] + w + 1, dims[1])):
+                for c in range(max(base[s, 2] - w, 0), min(base[s, 2] + w + 1, dims[2])):
+                    if _plane_keep(S, N, s, origin, h, a, b, c, depth, min_depth):
+                        out[q] = (a << (2 * KEY_BITS)) | (b << KEY_BITS) | c
+                        q += 1
+
+
+# lowest set bit's index of a word: (low * _DEBRUIJN) >> 58 is distinct for each of the 64 bits
+_DEBRUIJN = np.uint64(0x03F79D71B4CA8B09)
+_DEBRUIJN_POS = np.zeros(64, np.int64)
+for _i in range(64):
+    _DEBRUIJN_POS[(((1 << _i) * 0x03F79D71B4CA8B09) & 0xFFFFFFFFFFFFFFFF) >> 58] = _i
+
+
+@njit(cache=True, parallel=True)
+def _dedupe_layers(out, layer_n, uniq, pos_table):
+    """Each layer's distinct keys, sorted, to the front of its segment (``uniq`` per layer): a
+    bitmap over the layer's (second, third axis) box, read back in order (a sort of the ~4x
+    duplicated points took 1.8 s at the mandible's level 5)."""
+    for l in prange(layer_n.shape[0] - 1):
+        seg = out[layer_n[l]:layer_n[l + 1]]
+        n = seg.shape[0]
+        if n == 0:
+            uniq[l] = 0
+            continue
+        b0 = c0 = 1 << KEY_BITS
+        b1 = c1 = -1
+        for i in range(n):
+            b = (seg[i] >> KEY_BITS) & KEY_MASK
+            c = seg[i] & KEY_MASK
+            b0, b1, c0, c1 = min(b0, b), max(b1, b), min(c0, c), max(c1, c)
+        cols = c1 - c0 + 1
+        if (b1 - b0 + 1) * cols > 64 * n + 4096:  # sparse in its box: sort instead
+            seg.sort()
+            k = 1
+            for i in range(1, n):
+                if seg[i] != seg[k - 1]:
+                    seg[k] = seg[i]
+                    k += 1
+            uniq[l] = k
+            continue
+        bits = np.zeros(((b1 - b0 + 1) * cols + 63) // 64, np.uint64)
+        for i in range(n):
+            q = (((seg[i] >> KEY_BITS) & KEY_MASK) - b0) * cols + (seg[i] & KEY_MASK) - c0
+            bits[q >> 6] |= np.uint64(1) << np.uint64(q & 63)
+        top = seg[0] & ~((np.int64(1) << (2 * KEY_BITS)) - 1)  # the layer's first-axis bits
+        k = 0
+        for wi in range(bits.shape[0]):
+            word = bits[wi]
+            while word != 0:
+                low = word & (~word + np.uint64(1))
+                q = wi * 64 + pos_table[(low * _DEBRUIJN) >> np.uint64(58)]
+                seg[k] = top | ((q // cols + b0) << KEY_BITS) | (q % cols + c0)
+                k += 1
+                word ^= low
+        uniq[l] = k
+
+
+@njit(cache=True, parallel=True)
+def _gather_layers(out, layer_n, start, res):
+    for l in prange(layer_n.shape[0] - 1):
+        for i in range(start[l + 1] - start[l]):
+            res[start[l] + i] = out[layer_n[l] + i]
+
+
+def oriented_band(seeds, normals, origin, h, dims, w, depth, min_depth):
+    """Sorted unique keys of the points of each seed's cube (``w`` spacings each way) that lie at
+    least ``min_depth`` behind its tangent plane: the seed is ``depth`` behind the surface along
+    its unit inward normal (a zero normal keeps the whole cube). The points are bucketed by
+    first-axis layer (the keys sort by that axis first) and each layer deduplicated on its own,
+    in parallel: one sort of the ~4x duplicated points took 4 s at the mandible's level 5, this 1.2 s."""
+    S = np.ascontiguousarray(seeds, dtype=np.float64)
+    N = np.ascontiguousarray(normals, dtype=np.float64)
+    base = np.empty((len(S), 3), np.int64)
+    cnt = np.empty((len(S), 2 * w + 1), np.int64)
+    _oriented_counts(S, N, origin, float(h), dims, int(w), float(depth), float(min_depth), base, cnt)
+    layer_n, pos = _layer_slots(base, cnt, int(w), int(dims[0]))
+    out = np.empty(layer_n[-1], np.int64)
+    _oriented_emit(S, N, origin, float(h), dims, int(w), float(depth), float(min_depth), base, cnt, pos, out)
+    uniq = np.empty(int(dims[0]), np.int64)
+    _dedupe_layers(out, layer_n, uniq, _DEBRUIJN_POS)
+    start = np.zeros(len(uniq) + 1, np.int64)
+    np.cumsum(uniq, out=start[1:])
+    res = np.empty(start[-1], np.int64)
+    _gather_layers(out, layer_n, start, res)
+    return res
+
+
 @njit(cache=True)
 def decode(keys, origin, h):
     n = keys.shape[0]
@@ -197,15 +351,19 @@ class Voxelizer:
         keep = D > 0
         return P[keep], D[keep]
 
-    def band_keys(self, level: int, *groups) -> np.ndarray:
+    def band_keys(self, level: int, *groups, oriented=None) -> np.ndarray:
         """Sorted lattice keys of the level-``level`` points within a cube of some seed point.
 
         ``groups`` are ``(seeds (k, 3), half_width)`` pairs; the result is the union of the
         groups' bands (8 bytes a point: the caller decodes it in chunks, see ``decode``).
+        ``oriented`` is one more group, ``(seeds, half_width, normals, depth, min_depth)``, of
+        seeds ``depth`` behind the surface along the unit inward ``normals``: of each cube it
+        keeps the points at least ``min_depth`` behind the seed's tangent plane, all of them
+        where the normal is zero (see ``oriented_band``).
         """
         h = self.spacing(level)
         dims = self.dims(level)
-        out = np.empty(0, np.int64)
+        parts = []
         for seeds, half_width in groups:
             if len(seeds) == 0:
                 continue
@@ -214,5 +372,11 @@ class Voxelizer:
             # separable cube dilation, kept sorted and unique after each axis: memory ~ (2w+1) x the band
             for axis in range(3):
                 keys = _dilate(keys, axis, w, dims)
-            out = keys if len(out) == 0 else sorted_unique(np.concatenate([out, keys]))
-        return out
+            parts.append(keys)
+        if oriented is not None and len(oriented[0]):
+            seeds, half_width, normals, depth, min_depth = oriented
+            w = int(np.ceil(half_width / h - 1e-9))
+            parts.append(oriented_band(seeds, normals, self.origin, h, dims, w, depth, min_depth))
+        if not parts:
+            return np.empty(0, np.int64)
+        return parts[0] if len(parts) == 1 else sorted_unique(np.concatenate(parts))

@@ -377,6 +377,32 @@ def test_bvh_split_across_threads_equals_one_depth_first_build(monkeypatch, n):
         assert (lo[js] >= nlo[node]).all() and (hi[js] <= nhi[node]).all()
 
 
+@pytest.mark.parametrize("w, min_depth, nz", [(1, 0.0, 50), (2, 0.03, 50), (1, -5.0, 50), (1, 0.0, 5000), (2, 0.03, 5000)])
+def test_oriented_band_is_the_kept_part_of_each_cube(w, min_depth, nz):
+    """Per seed, the cube's points at least min_depth behind its plane (all of them for a zero
+    normal), made unique: by brute force, with seeds at the lattice's edges, on a lattice short
+    along its last axis (layers dense in their box: the bitmap path) and long (sparse: the sort)."""
+    from mjist.voxelize import KEY_BITS, oriented_band
+
+    rng = np.random.default_rng(w)
+    dims = np.array([30, 40, nz])
+    h, depth = 0.1, 0.05
+    S = rng.random((3000, 3)) * dims * h
+    S[10:14] = [[0, 0, 0], [2.95, 3.95, nz * h - 0.01], [-1, 2, 3], [1, 5, nz * h + 9]]  # edges, beyond
+    N = rng.standard_normal((3000, 3))
+    N /= np.linalg.norm(N, axis=1)[:, None]
+    N[20:40] = 0.0
+    got = oriented_band(S, N, np.zeros(3), h, dims, w, depth, min_depth)
+    o = np.stack(np.meshgrid(*[np.arange(-w, w + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    ref = []
+    for s in range(len(S)):
+        p = np.clip(np.floor(S[s] / h + 0.5).astype(np.int64), 0, dims - 1) + o
+        p = p[((p >= 0) & (p < dims)).all(1)]
+        p = p[(np.abs(N[s]).sum() == 0) | (depth + (p * h - S[s]) @ N[s] >= min_depth)]
+        ref.append((p[:, 0] << 2 * KEY_BITS) | (p[:, 1] << KEY_BITS) | p[:, 2])
+    assert len(got) and np.array_equal(got, np.unique(np.concatenate(ref)))
+
+
 def test_sorted_unique_is_np_unique():
     from mjist.voxelize import sorted_unique
 
