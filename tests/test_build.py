@@ -377,12 +377,18 @@ def test_bvh_split_across_threads_equals_one_depth_first_build(monkeypatch, n):
         assert (lo[js] >= nlo[node]).all() and (hi[js] <= nhi[node]).all()
 
 
-@pytest.mark.parametrize("w, min_depth, nz", [(1, 0.0, 50), (2, 0.03, 50), (1, -5.0, 50), (1, 0.0, 5000), (2, 0.03, 5000)])
-def test_oriented_band_is_the_kept_part_of_each_cube(w, min_depth, nz):
+@pytest.mark.parametrize("w, min_depth, nz, chunk", [(1, 0.0, 50, None), (2, 0.03, 50, 5000), (1, -5.0, 50, None),
+                                                     (1, 0.0, 5000, 3000), (2, 0.03, 5000, None)])
+def test_oriented_band_is_the_kept_part_of_each_cube(monkeypatch, w, min_depth, nz, chunk):
     """Per seed, the cube's points at least min_depth behind its plane (all of them for a zero
     normal), made unique: by brute force, with seeds at the lattice's edges, on a lattice short
-    along its last axis (layers dense in their box: the bitmap path) and long (sparse: the sort)."""
+    along its last axis (layers dense in their box: the bitmap path) and long (sparse: the sort),
+    in one slab of layers and in many (``chunk``)."""
+    from mjist import voxelize
     from mjist.voxelize import KEY_BITS, oriented_band
+
+    if chunk:
+        monkeypatch.setattr(voxelize, "ORIENTED_CHUNK", chunk)
 
     rng = np.random.default_rng(w)
     dims = np.array([30, 40, nz])
