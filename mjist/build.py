@@ -29,7 +29,7 @@ SEED_INSET = 0.5  # in lattice spacings
 # Of each cube, only the points at least BAND_MIN_DEPTH spacings behind the seed's tangent plane
 # (voxelize.oriented_band): the others are outside or nearer the surface than a new sphere's
 # radius (half a spacing) and were rejected one by one. CBCT mandible at 0.05 mm, level 5: band
-# 36.6 -> 21.0 M points, its free distances ~20 -> ~12 s, 5 of 4.56 M candidates lost.
+# 36.6 -> 21.0 M points, its free distances ~20 -> ~12 s, 10 of 4.56 M candidates lost.
 BAND_MIN_DEPTH = 0.25  # in lattice spacings
 # sparse=True: near the surface, only spheres that cover a gap seed (see packing.greedy_pack), on
 # the levels whose spacing is between COVER_MIN_H and 2 (inset reach > 0) times the target: there
