@@ -34,15 +34,18 @@ def encode(ijk):
 
 
 @njit(cache=True)
-def _seed_keys(seeds, origin, h, dims):
+def _nearest_points(seeds, origin, h, dims):
+    """Lattice coordinates ``(n, 3)`` of the lattice point nearest each seed, clamped to the lattice."""
     n = seeds.shape[0]
-    out = np.empty(n, np.int64)
+    out = np.empty((n, 3), np.int64)
     for s in range(n):
-        c0 = min(max(int(np.floor((seeds[s, 0] - origin[0]) / h + 0.5)), 0), dims[0] - 1)
-        c1 = min(max(int(np.floor((seeds[s, 1] - origin[1]) / h + 0.5)), 0), dims[1] - 1)
-        c2 = min(max(int(np.floor((seeds[s, 2] - origin[2]) / h + 0.5)), 0), dims[2] - 1)
-        out[s] = (c0 << (2 * KEY_BITS)) | (c1 << KEY_BITS) | c2
+        for d in range(3):
+            out[s, d] = min(max(int(np.floor((seeds[s, d] - origin[d]) / h + 0.5)), 0), dims[d] - 1)
     return out
+
+
+def _seed_keys(seeds, origin, h, dims):
+    return encode(_nearest_points(seeds, origin, h, dims))
 
 
 @njit(cache=True, nogil=True)
@@ -153,12 +156,10 @@ def _plane_keep(S, N, s, origin, h, a, b, c, depth, min_depth):
 
 @njit(cache=True, parallel=True)
 def _oriented_counts(S, N, sel, origin, h, dims, w, depth, min_depth, lay_lo, lay_hi, base, cnt):
-    """Per seed ``sel[t]``: its lattice point ``base[t]`` and how many kept points of its cube lie
-    in each of the ``2w + 1`` first-axis layers ``cnt[t]`` (0 outside layers ``lay_lo..lay_hi-1``)."""
+    """Per seed ``sel[t]`` (lattice point ``base[t]``): how many kept points of its cube lie in
+    each of the ``2w + 1`` first-axis layers ``cnt[t]`` (0 outside layers ``lay_lo..lay_hi-1``)."""
     for t in prange(sel.shape[0]):
         s = sel[t]
-        for d in range(3):
-            base[t, d] = min(max(int(np.floor((S[s, d] - origin[d]) / h + 0.5)), 0), dims[d] - 1)
         for i in range(2 * w + 1):
             a = base[t, 0] + i - w
             k = 0
@@ -283,10 +284,9 @@ def oriented_band(seeds, normals, origin, h, dims, w, depth, min_depth):
     S = np.ascontiguousarray(seeds, dtype=np.float64)
     N = np.ascontiguousarray(normals, dtype=np.float64)
     n_lay = int(dims[0])
-    lay = np.clip(np.floor((S[:, 0] - origin[0]) / h + 0.5), 0, n_lay - 1).astype(np.int64)
-    order = np.argsort(lay, kind="stable")
-    first = np.searchsorted(lay[order], np.arange(n_lay + 1))  # each layer's seeds in ``order``
-    del lay
+    near = _nearest_points(S, origin, float(h), dims)
+    order = np.argsort(near[:, 0], kind="stable")
+    first = np.searchsorted(near[order, 0], np.arange(n_lay + 1))  # each layer's seeds in ``order``
     budget = max(ORIENTED_CHUNK // (2 * w + 1) ** 3, 1)  # seeds reaching one slab
     parts = []
     lo = 0
@@ -297,7 +297,7 @@ def oriented_band(seeds, normals, origin, h, dims, w, depth, min_depth):
         hi = n_lay if top >= n_lay else min(max(top - w, lo + 1), n_lay)
         sel = order[first[max(lo - w, 0)]:first[min(hi + w, n_lay)]]
         if len(sel):
-            base = np.empty((len(sel), 3), np.int64)
+            base = near[sel]
             cnt = np.empty((len(sel), 2 * w + 1), np.int64)
             args = (origin, float(h), dims, int(w), float(depth), float(min_depth))
             _oriented_counts(S, N, sel, *args, lo, hi, base, cnt)
