@@ -47,7 +47,14 @@ from numba import njit, prange
 from .bvh import BVH, STACK, ball_gap, face_normal, sphere_gap, sphere_gap_xyz, spheres_near
 
 SUB_STACK = 256
-SEED_BUF = 32  # bad sub-triangle centroids kept per triangle in the first pass
+# Bad sub-triangle centroids kept per triangle in the first pass: at least SEED_BUF, and SEED_GROWTH
+# times its bad sub-triangles of the previous level (an open-for-certain one of bad_size splits into
+# at most four of the next, half as large: CBCT mandible at 0.05 mm, level 5, at most 4.0x), within
+# SEED_BUDGET entries in all (32 bytes each). Only triangles with more are walked again: a fine
+# level has ~130 per triangle, and walking them all twice took a third of its certification.
+SEED_BUF = 32
+SEED_GROWTH = 4.0
+SEED_BUDGET = 8_000_000
 COVER_SPHERES = 6  # spheres tried by the disk-cover test: nearest to the vertices and to the parent's
 # The cover test runs with the target shrunk by this (relative): rounding in the planar frame
 # (~1e-16 of the coordinates) can then never turn an uncovered point into a covered one.
@@ -404,10 +411,10 @@ def _sub_ub(P, G, J, sp, cov, ub_parent, C, R):
 
 
 @njit(cache=True, parallel=True)
-def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size, bad_size, buf, inset,
+def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, target, min_size, bad_size, buf, buf_off, inset,
                  prev, prev_off, pbuf):
-    """Every triangle's bound; its first ``buf.shape[1]`` bad centroids go to ``buf[t]``, their
-    keys to ``pbuf[t]``; ``prev[prev_off[t]:prev_off[t + 1]]`` are its earlier bad keys."""
+    """Every triangle's bound; its first bad centroids go to ``buf[buf_off[t]:buf_off[t + 1]]``,
+    their keys to ``pbuf`` likewise; ``prev[prev_off[t]:prev_off[t + 1]]`` are its earlier bad keys."""
     nf = faces.shape[0]
     ub = np.empty(nf)
     lb = np.empty(nf)
@@ -415,10 +422,22 @@ def _certify_all(V, F, faces, C, R, lo, hi, left, right, start, count, order, ta
     for t in prange(nf):
         stack = np.empty(STACK, np.int64)
         ub[t], lb[t], nbad[t] = _certify_triangle(
-            V, F, faces[t], C, R, lo, hi, left, right, start, count, order,
-            target, min_size, bad_size, stack, buf[t], inset, prev[prev_off[t]:prev_off[t + 1]], pbuf[t],
+            V, F, faces[t], C, R, lo, hi, left, right, start, count, order, target, min_size, bad_size, stack,
+            buf[buf_off[t]:buf_off[t + 1]], inset, prev[prev_off[t]:prev_off[t + 1]], pbuf[buf_off[t]:buf_off[t + 1]],
         )
     return ub, lb, nbad
+
+
+@njit(cache=True, parallel=True)
+def _pack_seeds(buf, pbuf, buf_off, nbad, off, seeds, keys):
+    """Copy each triangle's first-pass seeds and keys (those that fit its buffer) to their places."""
+    for t in prange(nbad.shape[0]):
+        if nbad[t] > buf_off[t + 1] - buf_off[t]:
+            continue  # walked again (_emit_bad)
+        for q in range(nbad[t]):
+            for d in range(3):
+                seeds[off[t] + q, d] = buf[buf_off[t] + q, d]
+            keys[off[t] + q] = pbuf[buf_off[t] + q]
 
 
 @njit(cache=True, parallel=True)
@@ -494,25 +513,28 @@ def certify_faces(
     pk, po = prev
     if len(po) != len(faces) + 1:
         raise ValueError(f"prev holds {len(po) - 1} triangles, faces {len(faces)}")
-    # one pass keeps up to SEED_BUF seeds per triangle; only triangles with more are walked again
-    nb = SEED_BUF if want_seeds else 0
-    buf = np.empty((len(faces), nb, 3))
-    pbuf = np.empty((len(faces), nb), np.int64)
+    # one pass keeps the seeds of each triangle that fit its share of the buffer (see SEED_GROWTH);
+    # only triangles with more are walked again
+    if want_seeds:
+        grow = SEED_GROWTH if SEED_GROWTH * len(pk) <= SEED_BUDGET else max(1.0, SEED_BUDGET / max(len(pk), 1))
+        cap = np.maximum(SEED_BUF, np.ceil(grow * np.diff(po))).astype(np.int64)
+    else:
+        cap = np.zeros(len(faces), np.int64)
+    buf_off = np.concatenate([[0], np.cumsum(cap)]).astype(np.int64)
+    buf = np.empty((buf_off[-1], 3))
+    pbuf = np.empty(buf_off[-1], np.int64)
     bad_size = float(min_size if bad_size is None else max(bad_size, min_size))
-    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size), bad_size, buf, float(seed_inset),
-                                pk, po, pbuf)
+    ub, lb, nbad = _certify_all(V, F, faces, C, R, *bvh.arrays, float(target), float(min_size), bad_size, buf, buf_off,
+                                float(seed_inset), pk, po, pbuf)
     seeds = np.empty((0, 3))
     paths = (np.empty(0, np.int64), np.zeros(len(faces) + 1, np.int64))
     if want_seeds and nbad.sum() > 0:
         off = np.concatenate([[0], np.cumsum(nbad)]).astype(np.int64)
         keys = np.empty(off[-1], np.int64)
-        fits = (nbad > 0) & (nbad <= SEED_BUF)
-        col = np.arange(SEED_BUF)[None, :] < nbad[fits][:, None]
-        at = (off[:-1][fits][:, None] + np.arange(SEED_BUF)[None, :])[col]
         seeds = np.empty((off[-1], 3))
-        seeds[at] = buf[fits][col]
-        keys[at] = pbuf[fits][col]
-        more = np.flatnonzero(nbad > SEED_BUF)
+        _pack_seeds(buf, pbuf, buf_off, nbad, off, seeds, keys)
+        del buf, pbuf
+        more = np.flatnonzero(nbad > cap)
         if len(more):
             offsets = np.concatenate([[0], np.cumsum(nbad[more])]).astype(np.int64)
             rest = np.empty((offsets[-1], 3))

@@ -487,6 +487,39 @@ def test_certificate_skips_only_what_an_earlier_walk_certified():
         certify_faces(V, F, faces[:3], C, R, target, 0.01, prev=restrict_paths(p0, still))
 
 
+def test_certificate_seeds_do_not_depend_on_the_first_pass_buffer(monkeypatch):
+    """certify_faces keeps each triangle's seeds in a first-pass buffer sized from its previous
+    open sub-triangles (SEED_GROWTH) and walks the triangles that overflow it again: the seeds,
+    their keys and the bounds are the same whichever triangles fit."""
+    import mjist.bound as bd
+    from mjist.mesh import load_mesh
+
+    m = load_mesh(torus())
+    t = built("torus_sparse")[1]
+    order = np.argsort(-t.leaf_radii, kind="stable")
+    C, R = t.leaf_centers, t.leaf_radii
+    V, F, target = m.vertices, m.faces, 0.02
+    faces = np.arange(len(F))
+    k = len(R) // 3
+    ub0, _, _, p0 = bd.certify_faces(V, F, faces, C[order[:k]], R[order[:k]], target, 0.02, want_seeds=True, bad_size=0.04)
+    still = np.flatnonzero(ub0 > target)
+    prev = bd.restrict_paths(p0, still)
+    k2 = 2 * len(R) // 3
+    runs = []
+    for buf, growth, budget in ((1, 0.0, 10**9), (4096, 0.0, 10**9), (2, 4.0, 10**9), (2, 4.0, len(prev[0]))):
+        monkeypatch.setattr(bd, "SEED_BUF", buf)
+        monkeypatch.setattr(bd, "SEED_GROWTH", growth)
+        monkeypatch.setattr(bd, "SEED_BUDGET", budget)
+        runs.append(bd.certify_faces(V, F, faces[still], C[order[:k2]], R[order[:k2]], target, 0.005, want_seeds=True,
+                                     bad_size=0.01, prev=prev))
+    nbad = np.diff(runs[0][3][1])
+    assert nbad.max() > 2 and len(runs[0][2]) > 100  # some triangles overflow a small buffer
+    for ub, lb, seeds, (keys, off) in runs[1:]:
+        assert np.array_equal(ub, runs[0][0]) and np.array_equal(lb, runs[0][1])
+        assert np.array_equal(seeds, runs[0][2])
+        assert np.array_equal(keys, runs[0][3][0]) and np.array_equal(off, runs[0][3][1])
+
+
 def test_certificate_stops_splitting_certainly_open_parts_at_bad_size():
     """certify_faces(bad_size=) splits a sub-triangle with a vertex gap above the target only down
     to bad_size (it is open whatever its children say) and the uncertain ones down to min_size:
