@@ -230,6 +230,7 @@ def build(
     open_paths = None  # their sub-triangles still above it (bound.certify_faces)
     ub_before = [np.full(len(m.faces), np.inf)] * STALL_LEVELS  # face_ub 1..STALL_LEVELS levels back
     stalled = np.empty(0, np.int64)  # triangles given up on (see STALL_GAIN)
+    sph_bvh, sph_n = None, -1  # the sphere BVH of the current level, over the first sph_n spheres
     tri = m.vertices[m.faces]
     inward = -np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     nrm = np.linalg.norm(inward, axis=1)[:, None]
@@ -246,6 +247,7 @@ def build(
         t_level = time.perf_counter()
         tc = time.perf_counter()
         sph_bvh = BVH.of_spheres(C, R) if len(R) else None
+        sph_n = len(R)  # C and R only grow: the same length is the same spheres
         if len(R):
             ub_f, _, seeds, paths = certify_faces(
                 m.vertices, m.faces, open_faces, C, R, target, CERT_MIN_SIZE * h, want_seeds=True, bvh=sph_bvh,
@@ -361,7 +363,9 @@ def build(
     # --- certified error bound --------------------------------------------------------------
     bar.stage("error bound")
     t = time.perf_counter()
-    leaf_bvh = BVH.of_spheres(C, R)  # the leaves in packing order: one BVH for both passes
+    # the leaves in packing order: one BVH for both passes (the last level's when the loop ended
+    # before adding spheres, the usual case: its certificate found the surface done)
+    leaf_bvh = sph_bvh if sph_bvh is not None and sph_n == len(R) else BVH.of_spheres(C, R)
     # once the target is certified, tightening ε below it needs less: where the gap is flat
     # near its maximum (many grown spheres hugging a coarse surface) a 5 % walk can take minutes
     rel = TIGHT_REL_MET if certified <= target else TIGHT_REL
