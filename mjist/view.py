@@ -93,9 +93,11 @@ def overlay(scn, model, data, handle, *, depth: int | None = None, contacts: boo
             if _free(scn) < 2:
                 break
             _add(scn, mujoco.mjtGeom.mjGEOM_SPHERE, (0.08 * L, 0, 0), pos, eye, _POINT_RGBA)
-            mujoco.mjv_connector(scn.geoms[scn.ngeom], int(mujoco.mjtGeom.mjGEOM_ARROW), 0.03 * L, pos, pos + L * n)
-            scn.geoms[scn.ngeom].rgba[:] = _ARROW_RGBA
-            scn.ngeom += 1
+            # mjv_connector sets only type, size, pos and mat: the slot's other fields (mesh,
+            # material and texture ids...) must come from mjv_initGeom, or they are whatever an
+            # earlier frame left there and the renderer follows them (a segfault in mjr_render)
+            _add(scn, mujoco.mjtGeom.mjGEOM_ARROW, (0, 0, 0), pos, eye, _ARROW_RGBA)
+            mujoco.mjv_connector(scn.geoms[scn.ngeom - 1], int(mujoco.mjtGeom.mjGEOM_ARROW), 0.03 * L, pos, pos + L * n)
             drawn["contacts"] += 1
     return drawn
 

@@ -427,6 +427,8 @@ def test_overlay_draws_tree_layers_and_contacts(cache):
                 covered = np.concatenate([np.arange(t.leaf_start[i], t.leaf_end[i]) for i in idx])
                 assert np.array_equal(np.sort(covered), np.arange(t.num_leaves))
         scn = mujoco.MjvScene(model, maxgeom=4000)
+        for g in scn.geoms:  # what an earlier frame may leave in the slots (a mesh geom's ids)
+            g.dataid, g.matid, g.texid, g.objtype = 7, 3, 2, int(mujoco.mjtObj.mjOBJ_GEOM)
         got = overlay(scn, model, d, h, depth=3)
         expect = sum(layer(t, 3).size for t in h.trees.values())
         ist = [c for c in d.contact[:d.ncon] if frozenset((c.geom1, c.geom2)) == frozenset(h.pairs[0].ids)]
@@ -434,6 +436,10 @@ def test_overlay_draws_tree_layers_and_contacts(cache):
         assert scn.ngeom == expect + 2 * len(ist)
         c = scn.geoms[scn.ngeom - 1]  # the last arrow starts at the last contact point
         assert np.linalg.norm(np.array(c.pos) - ist[-1].pos) <= 0.03 * float(model.geom_rbound.max())
+        # every drawn geom is fully initialised: no stale mesh, material or texture id for the
+        # renderer to follow (an arrow set by mjv_connector alone kept them: mjr_render segfaulted)
+        for g in list(scn.geoms)[:scn.ngeom]:
+            assert (g.dataid, g.matid, g.texid) == (-1, -1, -1), (g.type, g.dataid, g.matid, g.texid)
         small = mujoco.MjvScene(model, maxgeom=50)
         got = overlay(small, model, d, h, depth=h.trees["mandible"].depth)
         assert small.ngeom <= 50 and got["spheres"] == 50 and got["spheres_skipped"] > 0
