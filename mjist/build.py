@@ -17,7 +17,7 @@ from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
 # Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
-BUILDER_VERSION = 12
+BUILDER_VERSION = 13
 LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis (within a factor sqrt(2): FINE_RATIO)
 # With max_error, the level-0 spacing is the power-of-two multiple of max_error / FINE_RATIO
 # nearest to the longest extent / LEVEL0_CELLS, so that one level sits at that spacing

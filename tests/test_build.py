@@ -630,3 +630,18 @@ def test_build_uses_the_aligned_level0_spacing():
     tree = mjist.build(mesh, max_error=0.04)
     assert tree.info["levels"][0]["spacing"] == level0_spacing(float(mesh.extents.max()), 0.04)
 
+
+def test_two_ball_nodes_are_minimal():
+    """A node of two leaves gets the minimal enclosing ball: radius (d + r_i + r_j) / 2, or the
+    larger ball when it holds the other (also when the centres coincide)."""
+    from mjist.hierarchy import _two_balls
+
+    rng = np.random.default_rng(5)
+    C = rng.normal(size=(400, 3))
+    R = rng.uniform(0.01, 1.5, 400)
+    C[1] = C[0]  # coincident centres
+    for i, j in zip(range(0, 400, 2), range(1, 400, 2)):
+        c, r = _two_balls(C, R, i, j)
+        d = np.linalg.norm(C[i] - C[j])
+        assert np.linalg.norm(c - C[i]) + R[i] <= r and np.linalg.norm(c - C[j]) + R[j] <= r
+        assert r == pytest.approx(max(R[i], R[j], 0.5 * (d + R[i] + R[j])), rel=1e-9)
