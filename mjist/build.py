@@ -17,18 +17,8 @@ from .tree import InnerSphereTree
 from .voxelize import Voxelizer, decode, encode
 
 # Bumped whenever the same input and parameters give another tree (the tree cache keys on it).
-BUILDER_VERSION = 13
-LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis (within a factor sqrt(2): FINE_RATIO)
-# With max_error, the level-0 spacing is the power-of-two multiple of max_error / FINE_RATIO
-# nearest to the longest extent / LEVEL0_CELLS, so that one level sits at that spacing
-# whatever the mesh's size. The finest band level does most of the work, and how many spheres it
-# places depends on its spacing against the target: the CBCT mandible (96 cells) happened to
-# have it at max_error / 1.30 and the maxilla (another extent) at max_error / 1.16, where the
-# level left 2.5x more for the next one. Maxilla at 0.05 mm aligned at 1.3: 1.13 M -> 1.01 M
-# leaves, 89 -> 76 s, coverage 83.0 -> 83.6 %; the mandible's lattice is unchanged (96 cells).
-# Ratios 1.2 / 1.4 / 1.5 gave more leaves on both jaws (mandible 1.72 / 1.70 / 1.86 M against
-# 1.62 M, maxilla 1.07 / 1.04 / 1.13 M against 1.01 M).
-FINE_RATIO = 1.3
+BUILDER_VERSION = 14
+LEVEL0_CELLS = 96  # level-0 lattice points along the longest axis
 MAX_LEVELS = 12
 # Candidate band of each lattice level: cubes of half-width BAND_WIDTH around the centroids of the
 # surface patches still too far from the spheres, moved SEED_INSET into the solid (new spheres touch
@@ -208,7 +198,7 @@ def build(
     # --- voxelize + pack, level by level ---------------------------------------------------
     t = time.perf_counter()
     bar.stage("voxelize + pack")
-    h0 = level0_spacing(float(ext.max()), max_error)
+    h0 = float(ext.max()) / LEVEL0_CELLS
     vox = Voxelizer(m.vertices, m.faces, h0)
     t_vox = 0.0
     t_pack = 0.0
@@ -439,20 +429,6 @@ def build(
             "levels": level_log,
         },
     )
-
-
-def level0_spacing(extent: float, max_error: float | None) -> float:
-    """Level-0 lattice spacing of a mesh whose longest extent is ``extent``.
-
-    ``extent / LEVEL0_CELLS`` without a target; with one, the spacing ``max_error / FINE_RATIO
-    * 2**L`` nearest to it (integer ``L``, so within a factor sqrt(2): 68 to 136 cells), which
-    puts lattice level ``L`` at ``max_error / FINE_RATIO``.
-    """
-    h0 = extent / LEVEL0_CELLS
-    if max_error is None:
-        return h0
-    fine = max_error / FINE_RATIO
-    return fine * 2.0 ** int(np.round(np.log2(h0 / fine)))
 
 
 def _assemble(C, R, branching, seed):

@@ -609,28 +609,6 @@ def test_grown_packing_fills_more_with_fewer_spheres():
     assert len(Rm) == 7 and np.array_equal(Rm, Rg[:7])
 
 
-@pytest.mark.parametrize("extent", [0.1178, 0.1328, 1.0, 250.0])
-@pytest.mark.parametrize("max_error", [5e-5, 1e-4, 0.003])
-def test_one_lattice_level_sits_at_the_target_ratio(extent, max_error):
-    """Whatever the mesh's size, some level's spacing is max_error / FINE_RATIO (the spacing the
-    finest band level is tuned for), with 68 to 136 level-0 cells along the longest extent."""
-    from mjist.build import FINE_RATIO, LEVEL0_CELLS, level0_spacing
-
-    h0 = level0_spacing(extent, max_error)
-    levels = np.log2(h0 / (max_error / FINE_RATIO))
-    assert levels == pytest.approx(np.round(levels), abs=1e-9)
-    assert LEVEL0_CELLS / np.sqrt(2) - 1e-9 <= extent / h0 <= LEVEL0_CELLS * np.sqrt(2) + 1e-9
-    assert level0_spacing(extent, None) == extent / LEVEL0_CELLS  # a leaves-only build: no target
-
-
-def test_build_uses_the_aligned_level0_spacing():
-    from mjist.build import level0_spacing
-
-    mesh = torus()
-    tree = mjist.build(mesh, max_error=0.04)
-    assert tree.info["levels"][0]["spacing"] == level0_spacing(float(mesh.extents.max()), 0.04)
-
-
 def test_two_ball_nodes_are_minimal():
     """A node of two leaves gets the minimal enclosing ball: radius (d + r_i + r_j) / 2, or the
     larger ball when it holds the other (also when the centres coincide)."""
