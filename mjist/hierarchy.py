@@ -11,7 +11,8 @@ sphere joins its nearest prototype; each group becomes a child, recursively.
 Every node sphere encloses all leaf spheres below it (a wrapped hierarchy): its centre is
 refined by the Bădoiu–Clarkson iteration for the minimal ball enclosing balls, and its
 radius is then set to ``max |c - c_i| + r_i`` over its leaves, so enclosure holds exactly
-whatever the iteration did.
+whatever the iteration did. A node of two leaves (a third of them) gets the minimal ball in
+closed form instead (``_two_balls``).
 
 Nodes are numbered breadth first, so each node's children are contiguous
 (``child_start``, ``child_count``); leaves are reordered so each node's leaves are a
