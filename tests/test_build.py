@@ -39,7 +39,8 @@ SHAPES = {
     "box": (box, 0.08),
     "torus": (torus, 0.04),
     "two_shells": (two_shells, 0.05),
-    "torus_filled": (torus, 0.01, {"min_coverage": 0.9}),  # interior gaps filled too
+    # interior gaps filled too, to what the lattice reaches at this ε (89.8 %: levels down to ε / 2.6)
+    "torus_filled": (torus, 0.01, {"min_coverage": 0.89}),
     "torus_sparse": (torus, 0.02, {"sparse": True}),  # only spheres that close a surface gap
 }
 _cache = {}
@@ -186,7 +187,7 @@ def test_interior_fill_raises_coverage():
     """min_coverage fills the gaps between the interior spheres: more volume, same surface bound."""
     plain = mjist.build(torus(), max_error=0.01)
     filled = built("torus_filled")[1]
-    assert filled.coverage >= 0.9 and filled.coverage > plain.coverage + 0.01
+    assert filled.coverage >= 0.89 and filled.coverage > plain.coverage + 0.01
     assert filled.num_leaves > plain.num_leaves
     assert filled.error_bound <= SHAPES["torus_filled"][1]
     with pytest.raises(ValueError, match="min_coverage"):
@@ -201,7 +202,13 @@ def test_leaves_limit_stops_packing_largest_first():
     assert t.num_leaves == 50
     full = built("torus")[1]
     assert t.error_bound > full.error_bound
-    assert t.leaf_radii.max() == pytest.approx(full.leaf_radii.max())
+    # on the full build's lattice (the same max_error) the 50 are its largest spheres (the
+    # grown ones among them may differ a little: they are in the full build's top 67)
+    same = mjist.build(mesh, leaves=50, max_error=SHAPES["torus"][1])
+    assert same.leaf_radii.max() == full.leaf_radii.max()
+    assert np.sum(full.leaf_radii >= same.leaf_radii.min()) <= 75
+    # without a target the lattice is extent / 96, not aligned to max_error: a slightly other sphere
+    assert t.leaf_radii.max() == pytest.approx(full.leaf_radii.max(), rel=0.01)
 
 
 def test_branching_factor():
@@ -607,6 +614,28 @@ def test_grown_packing_fills_more_with_fewer_spheres():
     # max_new caps the count
     Cm, Rm = grown_pack(P, D.copy(), keys, vox.origin, h, 0.25 * h, 7, 1e-9, vox)
     assert len(Rm) == 7 and np.array_equal(Rm, Rg[:7])
+
+
+@pytest.mark.parametrize("extent", [0.1178, 0.1328, 1.0, 250.0])
+@pytest.mark.parametrize("max_error", [5e-5, 1e-4, 0.003])
+def test_one_lattice_level_sits_at_the_target_ratio(extent, max_error):
+    """Whatever the mesh's size, some level's spacing is max_error / FINE_RATIO (the spacing the
+    finest band level is tuned for), with 68 to 136 level-0 cells along the longest extent."""
+    from mjist.build import FINE_RATIO, LEVEL0_CELLS, level0_spacing
+
+    h0 = level0_spacing(extent, max_error)
+    levels = np.log2(h0 / (max_error / FINE_RATIO))
+    assert levels == pytest.approx(np.round(levels), abs=1e-9)
+    assert LEVEL0_CELLS / np.sqrt(2) - 1e-9 <= extent / h0 <= LEVEL0_CELLS * np.sqrt(2) + 1e-9
+    assert level0_spacing(extent, None) == extent / LEVEL0_CELLS  # a leaves-only build: no target
+
+
+def test_build_uses_the_aligned_level0_spacing():
+    from mjist.build import level0_spacing
+
+    mesh = torus()
+    tree = mjist.build(mesh, max_error=0.04)
+    assert tree.info["levels"][0]["spacing"] == level0_spacing(float(mesh.extents.max()), 0.04)
 
 
 def test_two_ball_nodes_are_minimal():
