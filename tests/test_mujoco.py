@@ -544,15 +544,18 @@ def test_sphere_falls_into_the_gap_between_teeth(comb_file, cache):
             warnings.simplefilter("always")
             h = A.attach(m, cache_dir=cache, primitives=mode)
         assert any("convex hull" in str(x.message) for x in w) == (mode == "native")  # the fallback is announced
-        z = np.empty(400)
+        q = np.empty((400, 3))
         with h:
             for i in range(400):
                 mujoco.mj_step(m, d)
-                z[i] = d.qpos[2]
-        # height at rest: the median of steps 150-300 (landed by ~130). Later a ball on the IST floor
-        # may roll away: a sphere-mesh pair holds ONE contact in MuJoCo, so it sits on one leaf
-        # sphere at a time (a bump, not a pocket) and wanders; here it can leave the 10 mm comb.
-        rest[mode] = float(np.median(z[150:300]))
+                q[i] = d.qpos[:3]
+        # height at rest: the median after landing (step ~55) while the ball is still over the
+        # comb. A ball on the IST floor rolls: a sphere-mesh pair holds ONE contact in MuJoCo, so it
+        # lands on one leaf sphere (a bump, not a pocket), is kicked sideways along the gap at
+        # 10-70 mm/s (it depends on the tree) and leaves the 10 mm deep comb within ~100 steps.
+        over = (np.arange(400) >= 60) & (np.abs(q[:, 1]) < 0.005 - 0.0015)
+        assert over.sum() >= 30, mode
+        rest[mode] = float(np.median(q[over, 2]))
     eps = 0.0004
     assert rest["native"] > 0.0095  # on the hull's lid over the tooth tips (9 mm + radius)
     assert -0.0015 - 1e-4 <= rest["ist"] <= -0.0015 + eps + 1e-4  # on the gap's floor (-3 mm + radius), within ε
