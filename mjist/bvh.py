@@ -461,6 +461,17 @@ def inside_near(p, qx, qy, qz, tf, interior, side, V, F, lo, hi, left, right, st
 
 
 @njit(cache=True, parallel=True)
+def unsigned_distance(P, V, F, lo, hi, left, right, start, count, order):
+    """Distance of points ``P (n, 3)`` to the triangles ``(V, F)`` (any mesh, closed or not)."""
+    n = P.shape[0]
+    out = np.empty(n)
+    for i in prange(n):
+        stack = np.empty(STACK, np.int64)
+        out[i] = np.sqrt(tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)[0])
+    return out
+
+
+@njit(cache=True, parallel=True)
 def signed_distance(P, V, F, side, lo, hi, left, right, start, count, order, dirs):
     """Signed distance of points ``P (n, 3)`` to a closed mesh: positive inside.
 
@@ -582,6 +593,11 @@ class BVH:
     def of_triangles(cls, V, F):
         T = V[F]
         return cls(T.min(axis=1), T.max(axis=1))
+
+    def distance(self, P, V, F):
+        """Unsigned distance of points ``P (n, 3)`` to the triangles ``(V, F)`` this BVH was built on."""
+        P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 3)
+        return unsigned_distance(P, np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64), *self.arrays)
 
     @classmethod
     def of_spheres(cls, C, R):

@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import jaw as jawmod
+from .bvh import BVH
 from .collision_driver import load_model, mesh_of
 from .query import Query
 
@@ -147,7 +148,7 @@ def occlusal_points(model, gmx, gmd, n: int = 300, reach: float = 3e-3) -> np.nd
     cand = cand[np.linspace(0, cand.size - 1, min(4000, cand.size)).astype(np.int64)] if cand.size else cand
     T = np.linalg.inv(Px) @ P  # mandible geom frame -> maxilla geom frame
     Vx, Fx = mesh_of(model, gmx)
-    _, dist, _ = trimesh.proximity.closest_point(trimesh.Trimesh(Vx, Fx, process=False), V[cand] @ T[:3, :3].T + T[:3, 3])
+    dist = BVH.of_triangles(Vx, Fx).distance(V[cand] @ T[:3, :3].T + T[:3, 3], Vx, Fx)
     keep = cand[dist < reach]
     if keep.size == 0:
         return V[:0]
