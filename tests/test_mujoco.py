@@ -286,6 +286,17 @@ def test_bad_config_is_named(comb_file, cache):
     assert registry.table_is_original()
 
 
+def test_contact_groups_default_by_mode(comb_file):
+    """Constraint contacts group at depth 5 (one contact per group: a deeper group cannot span both
+    slopes of a cusp), penalty forces at depth 3 (their law sums over groups); a setting wins."""
+    m = _model(comb_file)
+    assert A.read_config(m).split_depth == 5
+    assert A.read_config(m, mode="penalty").split_depth == 3
+    assert A.read_config(m, split_depth=2).split_depth == 2
+    xml = COMB_XML.format(comb=comb_file, gtype="mesh", extra='<numeric name="mjist_split_depth" data="4"/>')
+    assert A.read_config(mujoco.MjModel.from_xml_string(xml), mode="penalty").split_depth == 4
+
+
 def test_foreign_slot_function_is_refused(comb_file, cache):
     @cfunc(types.int32(types.voidptr, types.voidptr, types.voidptr, types.int32, types.int32, types.float64))
     def other(m, d, con, g1, g2, margin):
