@@ -373,13 +373,13 @@ def apply(E, m, d):
     for i in range(npen):
         row = pen[i]
         count[hook.C_CALLS] += 1
-        s, _ = hook._claim_slot(E, d, int(row[0]), nslot)  # the hook's own slot: its state is managed there
+        s, _ = hook._claim_slot(E, d, int(row[0]), nslot, 0)  # the hook's own slot: its state is managed there
         out = pout[s] if s >= 0 else spare
         _penalty_pair(E, m, d, row, con, small, big, out)
         out[O_TIME] = now
     for i in range(ncpl):
         row = cpl[i]
-        s, fresh = hook._claim_slot(E, d, nman * nman + i, nslot)
+        s, fresh = hook._claim_slot(E, d, nman * nman + i, nslot, 0)
         if s >= 0:
             out = pout[s]
             fst = carray(abi.f64_ptr(E[hook.E_FSTATE] + 8 * hook.FW * s), hook.FW)

@@ -67,9 +67,10 @@ I_PAIR, I_NPREV, I_NFRONT, I_PREV = 0, 2, 3, 4
 I_FRONT = I_PREV + 4 * KP
 IW = I_FRONT + 4 * NG
 # float words: distance-skip reference (pose, distance, valid), slot time, front reference
-# (pose, threshold reached, contact threshold, valid), last pose (+ valid)
-F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK = 0, 12, 13, 14, 15, 16, 28, 29, 30, 42
-FW = 44
+# (pose, threshold reached, contact threshold, valid), last pose (+ valid), the margin it serves
+F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN = 0, 12, 13, 14, 15, 16, 28, 29, 30, 42, 44
+FW = 45
+KEY_OTHER = np.int64(-(1 << 63))  # key bit of a pair's second slot: calls with another margin
 SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of ε1+ε2, x last step's motion
 
 # counters (racy increments from several threads: statistics only)
@@ -108,12 +109,15 @@ def _pose(xpos, xmat, g, P):
 
 
 @njit(cache=True, inline="always")
-def _claim_slot(E, d, p, nslot):
-    """Index of the (d, pair) state slot, claimed on first use; -1 when the table is full."""
+def _claim_slot(E, d, p, nslot, other):
+    """Index of the (d, pair) state slot (its second one if ``other``), claimed on first use;
+    -1 when the table is full."""
     key = d | (p << 48)
+    if other:
+        key |= KEY_OTHER
     keys_addr = E[E_KEYS]
     keys = carray(abi.i64_ptr(keys_addr), nslot)
-    h = ((d >> 4) ^ (p * 2654435761)) % nslot
+    h = ((d >> 4) ^ (p * 2654435761) ^ (other * 40503)) % nslot
     for k in range(nslot):
         i = (h + k) % nslot
         cur = keys[i]
@@ -175,15 +179,25 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
         return 0
 
     # coherence state of this (MjData, pair): only valid along one trajectory (time never
-    # decreases), so a reset or a new MjData at a recycled address starts fresh
+    # decreases), so a reset or a new MjData at a recycled address starts fresh. It serves one
+    # margin: mj_collision passes the pair's, mj_geomDistance its distmax, and a distance
+    # query between two steps would otherwise reset the steps' front and seeds (the answers
+    # stay the same, the work does not): calls with another margin get a second slot
     nslot = E[E_NSLOT]
     now = abi.load_f64(d + E[E_TIME])
-    s, fresh = _claim_slot(E, d, p, nslot)
+    s, fresh = _claim_slot(E, d, p, nslot, 0)
     if s >= 0:
-        ist = carray(abi.i64_ptr(E[E_ISTATE] + 8 * IW * s), IW)
         fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
         if not fresh and not (fst[F_TIME] <= now):
             fresh = True
+        if not fresh and fst[F_MARGIN] != margin:
+            s, fresh = _claim_slot(E, d, p, nslot, 1)
+            if s >= 0:
+                fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+                if not fresh and not (fst[F_TIME] <= now):
+                    fresh = True
+    if s >= 0:
+        ist = carray(abi.i64_ptr(E[E_ISTATE] + 8 * IW * s), IW)
     else:
         count[C_STATELESS] += 1
         ist = is_local
@@ -197,6 +211,7 @@ def _managed(E, m, d, con, g1, g2, margin, p, cap, scratch):
         fst[F_OK] = 0.0
         fst[F_FOK] = 0.0
         fst[F_LOK] = 0.0
+        fst[F_MARGIN] = margin
     fst[F_TIME] = now
     na = Na.shape[0]
     nb = Nb.shape[0]

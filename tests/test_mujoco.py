@@ -257,6 +257,33 @@ def test_thread_pool_bound_to_mjdata_gives_identical_steps(comb_file, cache):
     assert runs[0][-1, -1] > 0 and np.array_equal(runs[0], runs[1])
 
 
+def test_distance_queries_between_steps_leave_the_steps_alone(comb_file, cache):
+    """mj_geomDistance on the stepped MjData has its own coherence slot: the steps' trajectory
+    and their work (tree visits, front calls) are the same with or without the queries."""
+    m = _model(comb_file)
+    m.opt.gravity[:] = (0, 0, -9.81)
+    with A.attach(m, cache_dir=cache) as h:
+        runs = []
+        for query in (False, True):
+            h.reset_state()
+            d = mujoco.MjData(m)
+            _interlocked(m, d, gap_z=0.006)
+            d.qvel[:] = [0.01, 0.0, 0.0, 0.05, 0.02, 0.0]
+            traj, work = [], np.zeros(2, np.int64)
+            for _ in range(200):
+                s0 = h.stats()
+                mujoco.mj_step(m, d)
+                s1 = h.stats()
+                work += [s1["visits"] - s0["visits"], s1["front_calls"] - s0["front_calls"]]
+                traj.append(np.concatenate([d.qpos, d.qvel, [d.ncon]]))
+                if query:
+                    assert mujoco.mj_geomDistance(m, d, 0, 1, 0.05, None) < 0.05
+            runs.append((np.array(traj), work))
+    (ta, wa), (tb, wb) = runs
+    assert ta[-1, -1] > 0 and wa[1] > 0  # resting in contact, the front in use
+    assert np.array_equal(ta, tb) and np.array_equal(wa, wb)
+
+
 def test_bad_config_is_named(comb_file, cache):
     for extra, msg in [
         ('<text name="mjist_geomz" data="all"/>', "unknown mjist setting"),
