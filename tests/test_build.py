@@ -652,3 +652,28 @@ def test_two_ball_nodes_are_minimal():
         d = np.linalg.norm(C[i] - C[j])
         assert np.linalg.norm(c - C[i]) + R[i] <= r and np.linalg.norm(c - C[j]) + R[j] <= r
         assert r == pytest.approx(max(R[i], R[j], 0.5 * (d + R[i] + R[j])), rel=1e-9)
+
+
+def test_profile_build_script_times_every_level_and_restores_the_builder(tmp_path):
+    """``scripts/profile_build.py``: per-level stage times of a real build, the build left as it was."""
+    import importlib
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("profile_build", Path(__file__).parents[1] / "scripts" / "profile_build.py")
+    pb = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pb)
+    B = importlib.import_module("mjist.build")
+    before = {name: getattr(B, name) for name in pb.STAGES}
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    out = tmp_path / "p.json"
+    mesh.export(tmp_path / "s.stl")
+    pb.main([str(tmp_path / "s.stl"), "--max-error", "0.02", "--out", str(out)])
+    res = json.loads(out.read_text())
+    assert {name: getattr(B, name) for name in pb.STAGES} == before
+    assert res["error_bound"] <= 0.02 and res["leaves"] > 0
+    levels = res["per_level_s"]
+    assert "0" in levels and levels["0"]["grown_pack"] > 0  # level 0 packs
+    certified = [lv for lv, row in levels.items() if row.get("certify_faces", 0) > 0]
+    assert certified and all(int(lv) >= 1 for lv in certified)  # a level's certificate precedes its band
+    assert res["wall_s"] >= res["stage_s"]["pack"]
