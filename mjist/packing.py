@@ -91,22 +91,71 @@ def _pop_live(hk, hix, hn, f, alive, r_min):
     return -1, hn
 
 
+# Candidates near a new sphere are found through the sorted lattice keys: each (a, b) row of the
+# lattice is a contiguous run of them. A table of where each block of ROW_BLOCK rows starts (one
+# entry per block of the candidates' bounding rectangle, at most about ROW_TABLE_MAX_RATIO per
+# candidate: the block is widened until it fits) turns a binary search over all candidates per
+# row into one over a few of them. CBCT mandible at 0.05 mm, level-5 packing replayed: 14.1-15.0
+# -> 12.8-13.4 s (searchsorted over all 4.5 M keys per row: ~22 cache misses each).
+ROW_TABLE_MAX_RATIO = 2.0
+ROW_TABLE_MIN = 1 << 16  # entries the table may always have
+
+
 @njit(cache=True)
-def _lower_free(P, f, alive, keys, origin, h, x, y, z, r, reach, r_min):
+def _row_starts(keys, a_lo, b_lo, nbb, bs, n_rows):
+    start = np.empty(n_rows + 1, np.int64)
+    q = 0
+    for j in range(keys.shape[0]):
+        rq = ((keys[j] >> (2 * KEY_BITS)) - a_lo) * nbb + (((keys[j] >> KEY_BITS) & KEY_MASK) - b_lo) // bs
+        while q <= rq:
+            start[q] = j
+            q += 1
+    while q <= n_rows:
+        start[q] = keys.shape[0]
+        q += 1
+    return start
+
+
+def row_index(keys):
+    """Where each block of lattice rows of the sorted ``keys`` starts (see ``_lower_free``):
+    ``(start, a_lo, b_lo, nbb, bs)``: the rows ``(a, b)`` with ``(b - b_lo) // bs == k`` start at
+    ``start[(a - a_lo) * nbb + k]``."""
+    if len(keys) == 0:
+        return np.zeros(2, np.int64), 0, 0, 1, 1
+    a_lo, a_hi = int(keys[0] >> (2 * KEY_BITS)), int(keys[-1] >> (2 * KEY_BITS))
+    b = (keys >> KEY_BITS) & KEY_MASK
+    b_lo, b_hi = int(b.min()), int(b.max())
+    na, nb = a_hi - a_lo + 1, b_hi - b_lo + 1
+    cap = max(ROW_TABLE_MAX_RATIO * len(keys), ROW_TABLE_MIN)
+    bs = max(1, int(np.ceil(na * nb / cap)))
+    nbb = -(-nb // bs)
+    return _row_starts(keys, a_lo, b_lo, nbb, bs, na * nbb), a_lo, b_lo, nbb, bs
+
+
+@njit(cache=True)
+def _lower_free(P, f, alive, keys, rows, origin, h, x, y, z, r, reach, r_min):
     """Lower ``f`` of the live candidates within ``reach`` of a new sphere ``(x, y, z), r``
-    (lattice box scan), dropping those left below ``r_min``."""
+    (lattice box scan through ``row_index``'s table), dropping those left below ``r_min``."""
+    start, a_lo, b_lo, nbb, bs = rows
+    na = (start.shape[0] - 1) // nbb
     lo0 = int(np.ceil((x - reach - origin[0]) / h))
     hi0 = int(np.floor((x + reach - origin[0]) / h))
     lo1 = int(np.ceil((y - reach - origin[1]) / h))
     hi1 = int(np.floor((y + reach - origin[1]) / h))
     lo2 = int(np.ceil((z - reach - origin[2]) / h))
     hi2 = int(np.floor((z + reach - origin[2]) / h))
-    for a in range(max(lo0, 0), hi0 + 1):
-        for b in range(max(lo1, 0), hi1 + 1):
-            # the keys of one (a, b) row are contiguous in sorted order
+    for a in range(max(lo0, a_lo), min(hi0, a_lo + na - 1) + 1):
+        for b in range(max(lo1, b_lo), min(hi1, b_lo + nbb * bs - 1) + 1):
+            q = (a - a_lo) * nbb + (b - b_lo) // bs
+            r0 = start[q]
+            r1 = start[q + 1]
+            if r0 == r1:
+                continue
+            # the keys of one (a, b) row are contiguous in sorted order, inside their block
             base = (a << (2 * KEY_BITS)) | (b << KEY_BITS)
-            j0 = np.searchsorted(keys, base | max(lo2, 0))
-            j1 = np.searchsorted(keys, base | hi2, side="right")
+            blk = keys[r0:r1]
+            j0 = r0 + np.searchsorted(blk, base | max(lo2, 0))
+            j1 = r0 + np.searchsorted(blk, base | hi2, side="right")
             for j in range(j0, j1):
                 if not alive[j]:
                     continue
@@ -180,7 +229,6 @@ def _cover_seeds(cx, cy, cz, reach, S, ckeys, cstart, cend, origin, g):
     return hit
 
 
-@njit(cache=True)
 def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart, g, cover):
     """Greedy packing over lattice candidates.
 
@@ -206,6 +254,12 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart,
     -------
     centers (k, 3), radii (k,) in placement order (non-increasing radius).
     """
+    return _greedy_pack(np.ascontiguousarray(P), f, keys, row_index(keys), origin, h, r_min, max_new, shrink, S, ckeys, cstart,
+                        g, cover)
+
+
+@njit(cache=True)
+def _greedy_pack(P, f, keys, rows, origin, h, r_min, max_new, shrink, S, ckeys, cstart, g, cover):
     n = P.shape[0]
     hk, hix, hn, alive = _heap_of(f, r_min)
     ns = S.shape[0]
@@ -227,7 +281,7 @@ def greedy_pack(P, f, keys, origin, h, r_min, max_new, shrink, S, ckeys, cstart,
         k += 1
         # candidates within r + f can have their free distance lowered (all others have
         # f at most this one's, the heap's top)
-        _lower_free(P, f, alive, keys, origin, h, c[0], c[1], c[2], r, r + f[i], r_min)
+        _lower_free(P, f, alive, keys, rows, origin, h, c[0], c[1], c[2], r, r + f[i], r_min)
     return C[:k].copy(), R[:k].copy()
 
 
@@ -539,7 +593,7 @@ def _climb(x0, y0, z0, cur, reach, iters, tol, V, F, OC, OR, ns, OT, nt, D, U, a
 
 
 @njit(cache=True, parallel=True)
-def _grow_batch(P, f, alive, keys, origin, h, r_min, shrink, members, nb, C, R, head, nxt, sid, gorigin, g, gdims, V, F, tlo,
+def _grow_batch(P, f, alive, keys, rows, origin, h, r_min, shrink, members, nb, C, R, head, nxt, sid, gorigin, g, gdims, V, F, tlo,
                 thi, tleft, tright, tstart, tcount, torder, PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, iters, tol,
                 reach_f, buf, S, ckeys, cstart, cend, cg, cover, out):
     """Grow the candidates ``members[:nb]`` at once: ``out[b] = x, y, z, r`` (r = -1 when the
@@ -579,11 +633,11 @@ def _grow_batch(P, f, alive, keys, origin, h, r_min, shrink, members, nb, C, R, 
             continue
         # the candidates within r + start can have their free distance lowered: all others
         # have f <= start, except the ones held back from this batch (_grown_pack lowers those)
-        _lower_free(P, f, alive, keys, origin, h, x, y, z, r, r + start, r_min)
+        _lower_free(P, f, alive, keys, rows, origin, h, x, y, z, r, r + start, r_min)
 
 
 @njit(cache=True)
-def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, tleft, tright, tstart, tcount, torder,
+def _grown_pack(P, f, keys, rows, origin, h, r_min, max_new, shrink, V, F, tlo, thi, tleft, tright, tstart, tcount, torder,
                 PC, PR, slo, shi, sleft, sright, sstart, scount, sorder, gorigin, g, gdims, iters, tol, reach_f, buf, batch,
                 S, ckeys, cstart, cg, cover):
     n = P.shape[0]
@@ -629,7 +683,7 @@ def _grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, V, F, tlo, thi, t
                 nb += 1
         if nb == 0:
             break
-        _grow_batch(P, f, alive, keys, origin, h, r_min, shrink, members, nb, C[:k], R[:k], head, nxt, sid, gorigin, g,
+        _grow_batch(P, f, alive, keys, rows, origin, h, r_min, shrink, members, nb, C[:k], R[:k], head, nxt, sid, gorigin, g,
                     gdims, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, PC, PR, slo, shi, sleft, sright, sstart,
                     scount, sorder, iters, tol, reach_f, buf, S, ckeys, cstart, cend, cg, cover, out)
         for b in range(nb):
@@ -699,7 +753,7 @@ def grown_pack(P, f, keys, origin, h, r_min, max_new, shrink, vox, prior=None, s
     else:
         PC, PR, sb = np.zeros((0, 3)), np.zeros(0), BVH(np.zeros((1, 3)), np.zeros((1, 3)))
     return _grown_pack(
-        np.ascontiguousarray(P), f, keys, origin, float(h), float(r_min), int(max_new), float(shrink), vox.V, vox.F,
+        np.ascontiguousarray(P), f, keys, row_index(keys), origin, float(h), float(r_min), int(max_new), float(shrink), vox.V, vox.F,
         *vox.bvh.arrays, PC, PR, *sb.arrays, lo, g, gdims, int(GROW_ITERS if iters is None else iters),
         float(GROW_TOL), float(GROW_REACH), int(GROW_BUF), int(GROW_BATCH), *seeds,
     )

@@ -616,6 +616,38 @@ def test_grown_packing_fills_more_with_fewer_spheres():
     assert len(Rm) == 7 and np.array_equal(Rm, Rg[:7])
 
 
+@pytest.mark.parametrize("ratio", [2.0, 0.01])
+def test_lowering_free_distances_finds_every_candidate_in_reach(monkeypatch, ratio):
+    """``_lower_free`` through ``row_index``'s table (one row per entry, or blocks of rows when the
+    table is capped small) lowers exactly the candidates a brute-force scan lowers."""
+    import mjist.packing as pk
+    from mjist.voxelize import decode, encode
+
+    monkeypatch.setattr(pk, "ROW_TABLE_MAX_RATIO", ratio)
+    monkeypatch.setattr(pk, "ROW_TABLE_MIN", 16)
+    rng = np.random.default_rng(3)
+    h, origin = 0.1, np.array([-1.0, 0.5, 2.0])
+    ijk = np.unique(rng.integers(0, 40, (6000, 3)) + np.array([5, 9, 0]), axis=0)
+    keys = np.sort(encode(ijk))
+    P = decode(keys, origin, h)
+    rows = pk.row_index(keys)
+    if ratio < 1:
+        assert rows[4] > 1  # blocks of several rows
+    for _ in range(40):
+        x, y, z = origin + rng.uniform(-0.5, 5.0, 3)
+        r, reach = rng.uniform(0.0, 0.4), rng.uniform(0.1, 1.2)
+        f0 = rng.uniform(0.05, 2.0, len(P))
+        alive0 = rng.random(len(P)) < 0.9
+        f, alive = f0.copy(), alive0.copy()
+        pk._lower_free(P, f, alive, keys, rows, origin, h, x, y, z, r, reach, 0.1)
+        gap = np.linalg.norm(P - [x, y, z], axis=1) - r
+        # the box scan: every live candidate in the lattice box of half-width reach
+        box = np.all(np.abs(P - [x, y, z]) <= reach + 1e-12, axis=1) & alive0
+        want = np.where(box & (gap < f0), gap, f0)
+        assert np.array_equal(f, want)
+        assert np.array_equal(alive, alive0 & ~(box & (gap < f0) & (gap < 0.1)))
+
+
 @pytest.mark.parametrize("extent", [0.1178, 0.1328, 1.0, 250.0])
 @pytest.mark.parametrize("max_error", [5e-5, 1e-4, 0.003])
 def test_one_lattice_level_sits_at_the_target_ratio(extent, max_error):
