@@ -456,10 +456,27 @@ def level0_spacing(extent: float, max_error: float | None) -> float:
     return fine * 2.0 ** int(np.round(np.log2(h0 / fine)))
 
 
+def _leaf_order(C, R):
+    """``np.lexsort((C[:, 2], C[:, 1], C[:, 0], -R))``, with the coordinates looked at only among
+    equal radii (grown spheres rarely tie): CBCT mandible, 1.6 M leaves, 0.64 -> 0.19 s."""
+    order = np.argsort(-R, kind="stable")
+    Rs = R[order]
+    eq = Rs[1:] == Rs[:-1]
+    if eq.any():
+        tied = np.zeros(len(R), bool)
+        tied[:-1] |= eq
+        tied[1:] |= eq
+        pos = np.flatnonzero(tied)
+        group = np.concatenate([[0], np.cumsum(~eq)])[pos]  # runs of equal radii keep their slots
+        sub = order[pos]
+        order[pos] = sub[np.lexsort((C[sub, 2], C[sub, 1], C[sub, 0], group))]
+    return order
+
+
 def _assemble(C, R, branching, seed):
     """Hierarchy arrays (``InnerSphereTree`` fields) over leaf spheres ``C, R``."""
     # determinism: order leaves by (radius desc, then coordinates) before clustering
-    order = np.lexsort((C[:, 2], C[:, 1], C[:, 0], -R))
+    order = _leaf_order(C, R)
     C, R = np.ascontiguousarray(C[order]), np.ascontiguousarray(R[order])
     (centers, radii, cstart, ccount, parent, depth, lstart, lend, perm) = build_hierarchy(C, R, branching, seed)
     leaf_node = np.empty(len(R), np.int64)

@@ -709,3 +709,32 @@ def test_profile_build_script_times_every_level_and_restores_the_builder(tmp_pat
     certified = [lv for lv, row in levels.items() if row.get("certify_faces", 0) > 0]
     assert certified and all(int(lv) >= 1 for lv in certified)  # a level's certificate precedes its band
     assert res["wall_s"] >= res["stage_s"]["pack"]
+
+
+def test_leaf_order_is_the_lexsort_by_radius_then_coordinates():
+    """The hierarchy's input order: radius descending, ties by x, y, z (as np.lexsort), whether
+    no radii, some or all of them tie."""
+    from mjist.build import _leaf_order
+
+    rng = np.random.default_rng(5)
+    for n_radii in (10**9, 50, 3, 1):
+        C = rng.integers(0, 4, (3000, 3)).astype(float)  # coordinate ties too
+        R = rng.integers(1, n_radii + 1, 3000) / 7.0 if n_radii < 10**9 else rng.random(3000)
+        assert np.array_equal(_leaf_order(C, R), np.lexsort((C[:, 2], C[:, 1], C[:, 0], -R)))
+
+
+@pytest.mark.parametrize("shape", ["torus", "two_shells"])
+def test_level0_culling_keeps_every_inside_point(shape):
+    """Level 0 rules out far-outside points through a coarse lattice (the signed distance is
+    1-Lipschitz): the same points and distances as evaluating every lattice point."""
+    from mjist.voxelize import Voxelizer
+
+    mesh = SHAPES[shape][0]()
+    for h0 in (0.05, 0.13):
+        vox = Voxelizer(mesh.vertices, mesh.faces, h0)
+        P, D = vox.level0()
+        d = vox.dims(0)
+        ijk = np.stack(np.meshgrid(*[np.arange(n) for n in d], indexing="ij"), axis=-1).reshape(-1, 3)
+        A = vox.origin + h0 * ijk.astype(np.float64)
+        DA = vox.signed_distance(A)
+        assert np.array_equal(P, A[DA > 0]) and np.array_equal(D, DA[DA > 0])
