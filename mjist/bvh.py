@@ -564,11 +564,28 @@ def spheres_near(px, py, pz, C, R, lo, hi, left, right, start, count, order, sta
     return n
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def sphere_within_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound):
-    """Is some sphere's gap from ``(px, py, pz)`` below ``bound``? (Stops at the first one: a
-    rejection test, cheaper than ``sphere_gap_xyz``'s nearest search.)"""
-    return spheres_near(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, stack[:0]) != 0
+    """A sphere whose gap from ``(px, py, pz)`` is below ``bound``, or -1 (stops at the first
+    one: a rejection test, cheaper than ``sphere_gap_xyz``'s nearest search)."""
+    b2 = bound * bound
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if box_dist2(px, py, pz, lo, hi, node) >= b2:
+            continue
+        if left[node] < 0:
+            for i in range(start[node], start[node] + count[node]):
+                j = order[i]
+                if ball_gap(px, py, pz, C, R, j) < bound:
+                    return j
+            continue
+        stack[sp] = left[node]
+        stack[sp + 1] = right[node]
+        sp += 2
+    return -1
 
 
 @njit(cache=True, inline="always")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .bvh import (BVH, RAY_DIRS, STACK, ball_gap, box_dist2, closest_on_triangle, inside_near, sphere_gap,
+from .bvh import (BVH, RAY_DIRS, STACK, ball_gap, box_dist2, closest_on_triangle, inside_near, sphere_gap_xyz,
                   sphere_within_xyz, spheres_near, tri_closest)
 from .voxelize import KEY_BITS, KEY_MASK
 
@@ -285,34 +285,52 @@ def _greedy_pack(P, f, keys, rows, origin, h, r_min, max_new, shrink, S, ckeys, 
     return C[:k].copy(), R[:k].copy()
 
 
+BAND_CHUNK_POINTS = 4096  # band points per task of _band_free (consecutive: neighbours along a lattice row)
+
+
 @njit(cache=True, parallel=True)
 def _band_free(P, V, F, side, tlo, thi, tleft, tright, tstart, tcount, torder, C, R, slo, shi, sleft, sright, sstart, scount, sorder, dirs, r_min):
     n = P.shape[0]
     f = np.empty(n)
-    for i in prange(n):
+    tasks = (n + BAND_CHUNK_POINTS - 1) // BAND_CHUNK_POINTS
+    for t in prange(tasks):
         stack = np.empty(STACK, np.int64)
-        # cheapest rejections first. A sphere within r_min (40 % of a fine level's band: the
-        # spheres of the levels before) is found by a search that stops at the first one; then
-        # the surface: the points too near it (15 %) and, by its closest face's side (no ray
-        # where the face is uncrossed: bvh.inside_near), those outside (35 %); only the
-        # candidates left (12 %) need their exact gap to the spheres. CBCT mandible, 0.1 mm,
-        # level 4: 3.0 -> 2.0 s for 4 M points against surface first, then spheres.
-        if R.shape[0] > 0 and sphere_within_xyz(P[i, 0], P[i, 1], P[i, 2], C, R, slo, shi, sleft, sright, sstart, scount,
-                                                sorder, stack, r_min):
-            f[i] = -1.0
-            continue
-        d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, np.inf)
-        d = np.sqrt(d2)
-        if tf < 0 or d < r_min:
-            f[i] = -1.0
-            continue
-        if not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
-            f[i] = -1.0
-            continue
-        g = d
-        if R.shape[0] > 0:
-            g, _ = sphere_gap(P[i], C, R, slo, shi, sleft, sright, sstart, scount, sorder, stack, d)
-        f[i] = g if g >= r_min else -1.0
+        # the sphere that rejected (or was nearest to) the point before: band points come in
+        # lattice-key order, so it is usually within r_min of this one too, and the BVH search
+        # is skipped (the same answers: the test only asks whether any sphere is that near).
+        # CBCT mandible at 0.05 mm, a 4 M-point chunk of level 5: 1.30 -> 1.05 s.
+        last = -1
+        for i in range(t * BAND_CHUNK_POINTS, min(n, (t + 1) * BAND_CHUNK_POINTS)):
+            x, y, z = P[i, 0], P[i, 1], P[i, 2]
+            # cheapest rejections first. A sphere within r_min (40 % of a fine level's band: the
+            # spheres of the levels before) is found by a search that stops at the first one; then
+            # the surface: the points too near it (15 %) and, by its closest face's side (no ray
+            # where the face is uncrossed: bvh.inside_near), those outside (35 %); only the
+            # candidates left (12 %) need their exact gap to the spheres. CBCT mandible, 0.1 mm,
+            # level 4: 3.0 -> 2.0 s for 4 M points against surface first, then spheres.
+            if R.shape[0] > 0:
+                if last >= 0 and ball_gap(x, y, z, C, R, last) < r_min:
+                    f[i] = -1.0
+                    continue
+                j = sphere_within_xyz(x, y, z, C, R, slo, shi, sleft, sright, sstart, scount, sorder, stack, r_min)
+                if j >= 0:
+                    last = j
+                    f[i] = -1.0
+                    continue
+            d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, np.inf)
+            d = np.sqrt(d2)
+            if tf < 0 or d < r_min:
+                f[i] = -1.0
+                continue
+            if not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
+                f[i] = -1.0
+                continue
+            g = d
+            if R.shape[0] > 0:
+                g, j = sphere_gap_xyz(x, y, z, C, R, slo, shi, sleft, sright, sstart, scount, sorder, stack, d)
+                if j >= 0:
+                    last = j
+            f[i] = g if g >= r_min else -1.0
     return f
 
 

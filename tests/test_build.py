@@ -738,3 +738,31 @@ def test_level0_culling_keeps_every_inside_point(shape):
         A = vox.origin + h0 * ijk.astype(np.float64)
         DA = vox.signed_distance(A)
         assert np.array_equal(P, A[DA > 0]) and np.array_equal(D, DA[DA > 0])
+
+
+def test_band_free_distance_is_the_brute_force_one():
+    """``band_free_distance`` (rejections first, the previous point's sphere tried before the
+    BVH) gives min(surface distance, gap to the spheres) inside the mesh where that is at
+    least r_min, and -1 elsewhere, as a brute-force evaluation does."""
+    from mjist.packing import band_free_distance
+    from mjist.voxelize import Voxelizer
+
+    mesh = torus()
+    vox = Voxelizer(mesh.vertices, mesh.faces, 0.2)
+    P0, D0 = vox.level0()
+    keep = D0 > 0.1
+    C, R = P0[keep], 0.6 * D0[keep]  # spheres inside, some overlapping: only their union matters
+    d = vox.dims(2)
+    h = vox.spacing(2)
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in d], indexing="ij"), axis=-1).reshape(-1, 3)
+    P = vox.origin + h * ijk.astype(np.float64)
+    r_min = 0.5 * h
+    f = band_free_distance(P, vox, C, R, r_min)
+    sd = vox.signed_distance(P)
+    gap = np.min(np.linalg.norm(P[:, None] - C[None], axis=2) - R[None], axis=1)
+    want = np.minimum(sd, gap)
+    ok = (sd > 0) & (want >= r_min)
+    clear = np.abs(want - r_min) > 1e-9  # away from the threshold (rounding)
+    assert np.array_equal((f >= 0)[clear], ok[clear])
+    assert np.allclose(f[ok & clear], want[ok & clear], rtol=0, atol=1e-12)
+    assert (f[~ok & clear] == -1.0).all() and ok.sum() > 1000 and (~ok & (sd > 0)).sum() > 1000
