@@ -766,3 +766,23 @@ def test_band_free_distance_is_the_brute_force_one():
     assert np.array_equal((f >= 0)[clear], ok[clear])
     assert np.allclose(f[ok & clear], want[ok & clear], rtol=0, atol=1e-12)
     assert (f[~ok & clear] == -1.0).all() and ok.sum() > 1000 and (~ok & (sd > 0)).sum() > 1000
+
+
+def test_coverage_depth_script_samples_the_trees_coverage():
+    """``scripts/coverage_depth.py``: its Monte Carlo coverage matches the tree's (leaf volume over
+    mesh volume) within sampling error, and its depth bands partition the solid and the gap."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("coverage_depth", Path(__file__).parents[1] / "scripts" / "coverage_depth.py")
+    cd = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cd)
+    mesh, tree = built("torus")
+    r = cd.coverage_by_depth(mesh, tree.leaf_centers, tree.leaf_radii, samples=400_000, edges=[0, 0.02, 0.05, 0.1, np.inf])
+    n = r["inside_samples"]
+    sigma = np.sqrt(tree.coverage * (1 - tree.coverage) / n)
+    assert abs(r["coverage"] - tree.coverage) < 4 * sigma
+    assert sum(b["volume_share"] for b in r["bands"]) == pytest.approx(1.0)
+    assert sum(b["uncovered_share"] for b in r["bands"]) == pytest.approx(1.0)
+    # the surface layer thinner than ε is the least covered
+    assert r["bands"][0]["coverage"] < min(b["coverage"] for b in r["bands"][1:])
