@@ -533,13 +533,10 @@ def sphere_gap_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, s
     return max(best, 0.0), bi
 
 
-@njit(cache=True)
-def spheres_near(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, out):
-    """Indices of the spheres whose gap from ``(px, py, pz)`` is below ``bound``, into ``out``.
-
-    Returns how many, or -1 as soon as one more is found than ``out`` holds (with an empty
-    ``out``: -1 when there is any, a test that stops at the first one).
-    """
+@njit(cache=True, inline="always")
+def _near_scan(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, out):
+    """The spheres whose gap from ``(px, py, pz)`` is below ``bound`` into ``out``, until it is
+    full: returns ``(n, j)``, ``j`` the sphere found with ``out`` already full (-1: all found)."""
     b2 = bound * bound
     n = 0
     stack[0] = 0
@@ -554,38 +551,31 @@ def spheres_near(px, py, pz, C, R, lo, hi, left, right, start, count, order, sta
                 j = order[i]
                 if ball_gap(px, py, pz, C, R, j) < bound:
                     if n == out.shape[0]:
-                        return -1
+                        return n, j
                     out[n] = j
                     n += 1
             continue
         stack[sp] = left[node]
         stack[sp + 1] = right[node]
         sp += 2
-    return n
+    return n, -1
+
+
+@njit(cache=True)
+def spheres_near(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, out):
+    """Indices of the spheres whose gap from ``(px, py, pz)`` is below ``bound``, into ``out``.
+
+    Returns how many, or -1 as soon as one more is found than ``out`` holds.
+    """
+    n, more = _near_scan(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, out)
+    return -1 if more >= 0 else n
 
 
 @njit(cache=True)
 def sphere_within_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound):
     """A sphere whose gap from ``(px, py, pz)`` is below ``bound``, or -1 (stops at the first
     one: a rejection test, cheaper than ``sphere_gap_xyz``'s nearest search)."""
-    b2 = bound * bound
-    stack[0] = 0
-    sp = 1
-    while sp > 0:
-        sp -= 1
-        node = stack[sp]
-        if box_dist2(px, py, pz, lo, hi, node) >= b2:
-            continue
-        if left[node] < 0:
-            for i in range(start[node], start[node] + count[node]):
-                j = order[i]
-                if ball_gap(px, py, pz, C, R, j) < bound:
-                    return j
-            continue
-        stack[sp] = left[node]
-        stack[sp + 1] = right[node]
-        sp += 2
-    return -1
+    return _near_scan(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, stack[:0])[1]
 
 
 @njit(cache=True, inline="always")
