@@ -92,10 +92,10 @@ def _pop_live(hk, hix, hn, f, alive, r_min):
 
 
 # Candidates near a new sphere are found through the sorted lattice keys: each (a, b) row of the
-# lattice is a contiguous run of them. A table of where each block of ROW_BLOCK rows starts (one
-# entry per block of the candidates' bounding rectangle, at most about ROW_TABLE_MAX_RATIO per
-# candidate: the block is widened until it fits) turns a binary search over all candidates per
-# row into one over a few of them. CBCT mandible at 0.05 mm, level-5 packing replayed: 14.1-15.0
+# lattice is a contiguous run of them. A table of where each row starts (``row_index``: one entry
+# per row of the candidates' bounding rectangle, or per block of neighbouring rows when that would
+# be more than ROW_TABLE_MAX_RATIO entries per candidate) turns a binary search over all
+# candidates per row into one over a few of them. CBCT mandible at 0.05 mm, level-5 packing replayed: 14.1-15.0
 # -> 12.8-13.4 s (searchsorted over all 4.5 M keys per row: ~22 cache misses each).
 ROW_TABLE_MAX_RATIO = 2.0
 ROW_TABLE_MIN = 1 << 16  # entries the table may always have
