@@ -15,10 +15,10 @@ from . import jitcache
 
 jitcache.check()  # before any kernel loads: a cache built from other sources is stale
 
-from .build import build, sphere_tree  # noqa: E402
+from .builder.pipeline import build, sphere_tree  # noqa: E402
 from .errors import ConfigError, MeshError, TreeFileError  # noqa: E402
-from .mesh import Mesh, load_mesh  # noqa: E402
-from .query import ContactResult, DistanceResult, PenetrationResult, Query  # noqa: E402
+from .geometry.mesh import Mesh, load_mesh  # noqa: E402
+from .query.api import ContactResult, DistanceResult, PenetrationResult, Query  # noqa: E402
 from .tree import FORMAT_VERSION, InnerSphereTree, load_tree  # noqa: E402
 
 __all__ = [
@@ -42,14 +42,14 @@ __all__ = [
 ]
 __version__ = "0.1.0"
 
-_MUJOCO_NAMES = ("attach", "load_model", "Handle")
+_MUJOCO_NAMES = {"attach": "attach", "load_model": "attach", "Handle": "handle"}
 
 
 def __getattr__(name):
     # the MuJoCo layer is imported on first use, so `mjist render`/`demo` can pick the GL
     # backend (MUJOCO_GL) before `import mujoco` reads it
     if name in _MUJOCO_NAMES:
-        from . import collision_driver
+        import importlib
 
-        return getattr(collision_driver, name)
+        return getattr(importlib.import_module(f".mujoco.{_MUJOCO_NAMES[name]}", __name__), name)
     raise AttributeError(f"module 'mjist' has no attribute {name!r}")

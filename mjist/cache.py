@@ -29,7 +29,7 @@ def cache_dir(path=None) -> str:
 
 def tree_key(vertices, faces, params: dict) -> str:
     """Content key of a tree: mesh bytes + build parameters + builder and format versions."""
-    from .build import BUILDER_VERSION
+    from .builder.pipeline import BUILDER_VERSION
 
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(vertices, np.float64).tobytes())
@@ -44,7 +44,7 @@ def cached_tree(vertices, faces, params: dict, *, folder=None, progress: bool = 
 
     Returns ``(tree, hit)``. ``params`` are ``mjist.build`` keyword arguments.
     """
-    from .build import build
+    from .builder.pipeline import build
 
     folder = cache_dir(folder)
     key = tree_key(vertices, faces, params)

@@ -9,7 +9,7 @@ import time
 import warnings
 from pathlib import Path
 
-MODELS = Path(__file__).resolve().parent.parent / "models"
+from .jaw import BUNDLED as MODELS
 
 
 def _report(tree, out: str | None, mesh: str) -> str:
@@ -36,7 +36,7 @@ def _report(tree, out: str | None, mesh: str) -> str:
 
 
 def _cmd_build(args) -> int:
-    from . import build
+    from .builder.pipeline import build
     from .errors import MeshError
 
     meshes = args.mesh or sorted(str(p) for p in MODELS.glob("*.stl")) + sorted(str(p) for p in MODELS.glob("*.obj"))
@@ -72,8 +72,8 @@ def _cmd_build(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from .tree import load_tree
     from .errors import TreeFileError
+    from .tree import load_tree
 
     try:
         tree = load_tree(args.tree)
@@ -97,7 +97,7 @@ def _user_errors(name: str, run, extra: tuple = ()) -> int:
 
 def _cmd_demo(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from . import demo
+    from .jaw import demo
 
     return _user_errors("demo", lambda: demo.main(
         scene=args.scene, data=args.data, native=args.native, seconds=args.seconds, out=args.out_dir,
@@ -108,9 +108,9 @@ def _cmd_render(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     import mujoco
 
-    from . import demo
-    from .collision_driver import load_model
     from .errors import ConfigError
+    from .jaw import demo
+    from .mujoco.attach import load_model
 
     try:
         model, handle = (mujoco.MjModel.from_xml_path(args.scene), None) if args.native else load_model(args.scene)
@@ -132,7 +132,7 @@ def _cmd_render(args) -> int:
 
 
 def _cmd_view(args) -> int:
-    from . import view
+    from .mujoco import view
 
     try:
         return _user_errors("view", lambda: view.view(args.scene, depth=args.spheres, key=args.key, native=args.native,
@@ -143,7 +143,7 @@ def _cmd_view(args) -> int:
 
 
 def _cmd_haptic(args) -> int:
-    from . import haptic
+    from .jaw import haptic
 
     return _user_errors("haptic", lambda: haptic.main(
         scene=args.scene, trajectory=args.trajectory, law=args.law, seconds=args.seconds, out=args.out_dir,
@@ -152,7 +152,7 @@ def _cmd_haptic(args) -> int:
 
 def _cmd_occlusion(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from . import occlusion
+    from .jaw import occlusion
 
     return _user_errors("occlusion", lambda: occlusion.main(
         scene=args.scene, data=args.data, starts=args.starts, translation_mm=args.translation, rotation_deg=args.rotation,
@@ -170,9 +170,7 @@ def _cmd_bench(args) -> int:
     return _user_errors("bench", run)
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
-    sub = p.add_subparsers(dest="cmd", required=True)
+def _add_build(sub) -> None:
     b = sub.add_parser("build", help="build the Inner Sphere Tree of a closed mesh (default: the bundled models)")
     b.add_argument("mesh", nargs="*", help="STL/OBJ/PLY file(s); default: every mesh in models/")
     b.add_argument("-o", "--output", help="output .npz (default: OUT_DIR/<mesh>.ist.npz)")
@@ -189,9 +187,15 @@ def main(argv=None) -> int:
     b.add_argument("--json", help="also write the report as JSON to this file")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=_cmd_build)
+
+
+def _add_info(sub) -> None:
     i = sub.add_parser("info", help="print the statistics of a saved tree")
     i.add_argument("tree")
     i.set_defaults(func=_cmd_info)
+
+
+def _add_demo(sub) -> None:
     dm = sub.add_parser("demo", help="simulate jaw closure with IST contacts (default: the bundled jaws)")
     dm.add_argument("--scene", help="MJCF scene (default: models/jaw_closure.xml)")
     dm.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
@@ -202,6 +206,9 @@ def main(argv=None) -> int:
     dm.add_argument("--no-picture", action="store_true", help="skip the rendering")
     dm.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     dm.set_defaults(func=_cmd_demo)
+
+
+def _add_render(sub) -> None:
     r = sub.add_parser("render", help="render a scene headless (MUJOCO_GL=egl or osmesa) with its contacts")
     r.add_argument("scene")
     r.add_argument("-o", "--output", default="out/render.png")
@@ -209,6 +216,9 @@ def main(argv=None) -> int:
     r.add_argument("--native", action="store_true", help="without the IST")
     r.add_argument("--spheres", type=int, default=None, metavar="DEPTH", help="draw the tree spheres at this depth")
     r.set_defaults(func=_cmd_render)
+
+
+def _add_view(sub) -> None:
     v = sub.add_parser("view", help="open MuJoCo's viewer with IST contacts, contact normals and tree spheres")
     v.add_argument("scene", nargs="?", default=str(MODELS / "jaw_closure.xml"))
     v.add_argument("--spheres", type=int, default=None, metavar="DEPTH", help="draw the tree spheres at this depth")
@@ -217,6 +227,9 @@ def main(argv=None) -> int:
     v.add_argument("--seconds", type=float, default=None, help="close after this much simulated time")
     v.add_argument("--native", action="store_true", help="without the IST")
     v.set_defaults(func=_cmd_view)
+
+
+def _add_haptic(sub) -> None:
     hp = sub.add_parser("haptic", help="drive the mandible with a simulated haptic device; log forces, plot them")
     hp.add_argument("scene", nargs="?", default=None, help="haptic scene (default: models/haptic_jaw.xml)")
     hp.add_argument("--trajectory", default="chewing",
@@ -228,6 +241,9 @@ def main(argv=None) -> int:
     hp.add_argument("--out-dir", default="out/haptic", help="log (.npz), summary (.json) and plot (.png)")
     hp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     hp.set_defaults(func=_cmd_haptic)
+
+
+def _add_occlusion(sub) -> None:
     oc = sub.add_parser("occlusion", help="search where the teeth fit: close many starting poses in parallel, rank them")
     oc.add_argument("scene", nargs="?", default=None, help="occlusion-search scene (default: models/occlusion_search.xml)")
     oc.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
@@ -240,11 +256,21 @@ def main(argv=None) -> int:
     oc.add_argument("--out-dir", default="out/occlusion", help="occlusion.json, landscape.png, best.png")
     oc.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     oc.set_defaults(func=_cmd_occlusion)
+
+
+def _add_bench(sub) -> None:
     bn = sub.add_parser("bench", help="run the benchmark suite; write BENCHMARKS.generated.md and pareto.png")
     bn.add_argument("--quick", action="store_true", help="small sizes, under 5 minutes")
     bn.add_argument("--only", help="comma-separated stages: build, query, paper, scaling, mujoco, haptic, occlusion")
     bn.add_argument("--out-dir", default="out/bench")
     bn.set_defaults(func=_cmd_bench)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for add in (_add_build, _add_info, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_bench):
+        add(sub)
     args = p.parse_args(argv)
     t = time.perf_counter()
     rc = args.func(args)

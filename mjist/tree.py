@@ -1,4 +1,4 @@
-"""Stage 6: the Inner Sphere Tree container, flat structure of arrays, and its file format."""
+"""The Inner Sphere Tree container, flat structure of arrays, and its file format."""
 from __future__ import annotations
 
 import json

@@ -23,9 +23,12 @@ import coal
 import mujoco
 import numpy as np
 
-from mjist import collision_driver as A
-from mjist import haptic
-from mjist import jaw as jawmod
+from mjist.jaw import haptic
+from mjist.jaw import pair as jawmod
+from mjist.jaw.scenes import pair_scene
+from mjist.mujoco import attach as A
+from mjist.mujoco import config
+from mjist.mujoco.scene import geom_pose, geom_pose_at, mesh_of
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data" / "jaw"
@@ -43,13 +46,11 @@ def coal_depth(ba, Pa, bb, Pb) -> float:
 def run_case(scene, law, max_error, trajectories, every, steps_cap):
     model, h = A.load_model(scene, penalty=law, max_error=max_error, progress=True)
     gmx, gmd = h.geoms["maxilla"], h.geoms["mandible"]
-    ba, bb = (jawmod.coal_bvh(*A.mesh_of(model, g)) for g in (gmx, gmd))
+    ba, bb = (jawmod.coal_bvh(*mesh_of(model, g)) for g in (gmx, gmd))
     d0 = mujoco.MjData(model)
     mujoco.mj_forward(model, d0)
-    Pmx = np.eye(4)
-    Pmx[:3, :3] = d0.geom_xmat[gmx].reshape(3, 3)
-    Pmx[:3, 3] = d0.geom_xpos[gmx]
-    k = A.DEFAULT_STIFFNESS["contacts"]
+    Pmx = geom_pose(d0, gmx)
+    k = config.DEFAULT_STIFFNESS["contacts"]
     out = {"law": law, "max_error": max_error, "eps_mm": h.pairs[0].error_bound * 1e3,
            "leaves": {n: t.num_leaves for n, t in h.trees.items()}, "trajectories": {}}
     for name in trajectories:
@@ -62,7 +63,7 @@ def run_case(scene, law, max_error, trajectories, every, steps_cap):
         err, coal_t = [], []
         idx = np.flatnonzero(log["contacts"] > 0)[::every]
         for i in idx:
-            Pmd = haptic.geom_pose(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
+            Pmd = geom_pose_at(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
             t = time.perf_counter()
             dc = coal_depth(ba, Pmx, bb, Pmd)
             coal_t.append(time.perf_counter() - t)
@@ -106,14 +107,14 @@ def main():
             scenes[p] = haptic.SCENE
         elif p == "real":
             if SHARED.exists():
-                scenes[p] = haptic.scene_for(SHARED, ROOT / "out" / "scene_real_haptic")
+                scenes[p] = pair_scene(SHARED, ROOT / "out" / "scene_real_haptic", "haptic")
             else:
                 print(f"skip real: {SHARED} not present")
     results = {"mujoco": mujoco.__version__, "cases": []}
     t0 = time.perf_counter()
     for name, scene in scenes.items():
         m0 = mujoco.MjModel.from_xml_path(str(scene))
-        own = A.read_config(m0).max_error
+        own = config.read_config(m0).max_error
         seen = set()
         for me in a.max_errors.split(","):
             value = own if me == "default" else float(me)

@@ -25,9 +25,10 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from mjist import collision_driver as A
-from mjist import jaw as jawmod
-from mjist.demo import scene_for
+from mjist.jaw import pair as jawmod
+from mjist.jaw.scenes import pair_scene
+from mjist.mujoco import attach as A
+from mjist.mujoco.scene import geom_pose, mesh_of
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data" / "jaw"
@@ -119,12 +120,6 @@ def _coacd_model(scene: Path, threshold: float):
     return m, time.perf_counter() - t, seconds, pieces
 
 
-def _pose(d, g):
-    P = np.eye(4)
-    P[:3, :3] = d.geom_xmat[g].reshape(3, 3)
-    P[:3, 3] = d.geom_xpos[g]
-    return P
-
 
 def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
     if mode == "ist-mesh":
@@ -172,8 +167,8 @@ def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
             else:  # the contacts were found at the step's start pose, which d.geom_xpos still holds
                 at = d
                 rep = min(cons) if cons else float("nan")
-            true_d = jawmod.coal_distance(ba, _pose(at, gmx), bb, _pose(at, gmd))
-            hit = jawmod.coal_collides(ba, _pose(at, gmx), bb, _pose(at, gmd))
+            true_d = jawmod.coal_distance(ba, geom_pose(at, gmx), bb, geom_pose(at, gmd))
+            hit = jawmod.coal_collides(ba, geom_pose(at, gmx), bb, geom_pose(at, gmd))
             err.append({"frame": i, "coal": float(true_d), "coal_hit": bool(hit), "reported": float(rep),
                         "contacts": len(cons)})
     q = d.qpos.copy()
@@ -228,13 +223,13 @@ def main():
             scenes[p] = ROOT / "models" / "jaw_closure.xml"
         elif p == "real":
             if SHARED.exists():
-                scenes[p] = scene_for(SHARED, ROOT / "out" / "scene_real")
+                scenes[p] = pair_scene(SHARED, ROOT / "out" / "scene_real", "closure")
             else:
                 print(f"skip real: {SHARED} not present")
     results = {"mujoco": mujoco.__version__, "cases": {}}
     for name, scene in scenes.items():
         m0 = mujoco.MjModel.from_xml_path(str(scene))
-        coal_pair = tuple(jawmod.coal_bvh(*A.mesh_of(m0, mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_GEOM, g))) for g in ("maxilla", "mandible"))
+        coal_pair = tuple(jawmod.coal_bvh(*mesh_of(m0, mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_GEOM, g))) for g in ("maxilla", "mandible"))
         results["cases"][name] = {}
         for mode in a.modes.split(","):
             if mode == "native-coacd" and a.quick and not coacd_cached(scene, a.coacd_threshold):
@@ -253,7 +248,6 @@ def main():
     lines = ["| pair | mode | compile s | step µs median | mean | once closed | final hinge ° | bound violations / false contacts | |err| median / max mm |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, case in results["cases"].items():
-        base = case.get("native-hull", {}).get("step_us_median")
         for mode, r in case.items():
             viol = r.get("bound_violations", r.get("false_contact_frames"))
             err = f"{r['abs_err_mm_median']:.3f} / {r['abs_err_mm_max']:.3f}" if r.get("abs_err_mm_median") is not None else "–"

@@ -14,7 +14,7 @@ import json
 import os
 from pathlib import Path
 
-from mjist import occlusion
+from mjist.jaw import occlusion
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -31,9 +31,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_query import CLENCH, coal_replay, pairs_available, stats, timed, write_outputs  # noqa: E402
+from benchlib import tree_for  # noqa: E402
 
 import mjist  # noqa: E402
-from mjist import jaw  # noqa: E402
+from mjist.jaw import pair as jaw  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 REL_MIN = 1e-4  # m: frames closer than this have no meaningful relative error
@@ -43,15 +44,10 @@ FULL = {"frames": 1000, "leaves": [1000, 3000, 10000, 30000, 100000, 300000],
 QUICK = {"frames": 300, "leaves": [1000, 3000, 10000], "depth_leaves": [3000], "branching": [2, 4, 16]}
 
 
-def tree_for(path, mesh_hash, name, leaves, branching, cache):
-    """The tree of ``path`` with ``leaves`` leaves and ``branching`` (cached on disk) and its build seconds."""
-    f = cache / f"{name}_n{leaves}_b{branching}.ist.npz"
-    try:
-        tree = mjist.load_tree(f, expect_hash=mesh_hash)
-    except mjist.TreeFileError:
-        tree = mjist.build(str(path), leaves=leaves, branching=branching)
-        tree.save(f)
-    return tree, float(tree.timings["total"])  # the build's own time, cached or not
+def _tree(path, leaves, branching):
+    """A tree with ``leaves`` leaves and ``branching``, and its build's own seconds (cached or not)."""
+    tree, _, _ = tree_for(path, leaves=leaves, branching=branching)
+    return tree, float(tree.timings["total"])
 
 
 def measure(ta, tb, poses, truth, contact):
@@ -96,7 +92,7 @@ def measure(ta, tb, poses, truth, contact):
     return row
 
 
-def run_pair(label, folder, cfg, cache):
+def run_pair(label, folder, cfg):
     mx, md, info = jaw.load_pair(folder)
     paths = (Path(info["paths"]["maxilla"]), Path(info["paths"]["mandible"]))
     print(f"[{label}] {paths[0]} + {paths[1]}", flush=True)
@@ -113,8 +109,8 @@ def run_pair(label, folder, cfg, cache):
            "leaves_sweep": [], "depth_sweep": {}}
 
     def pair_trees(n, b):
-        ta, sa = tree_for(paths[0], mx.content_hash, f"{label}_maxilla", n, b, cache)
-        tb, sb = tree_for(paths[1], md.content_hash, f"{label}_mandible", n, b, cache)
+        ta, sa = _tree(paths[0], n, b)
+        tb, sb = _tree(paths[1], n, b)
         return ta, tb, sa + sb
 
     for n in cfg["leaves"]:
@@ -259,15 +255,13 @@ def main(argv=None):
     a = ap.parse_args(argv)
     cfg = QUICK if a.quick else FULL
     out = Path(a.out)
-    cache = out / "trees"
-    cache.mkdir(parents=True, exist_ok=True)
     avail = pairs_available()
     want = [p for p in (["bundled"] if a.quick else a.pairs.split(",")) if p in avail]
     if not want:
         print("no jaw pair found", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    results = {p: run_pair(p, avail[p], cfg, cache) for p in want}
+    results = {p: run_pair(p, avail[p], cfg) for p in want}
     meta = {"frames": cfg["frames"], "config": cfg, "seconds": time.perf_counter() - t0,
             "command": "python scripts/bench_paper.py" + (" --quick" if a.quick else ""),
             "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"}

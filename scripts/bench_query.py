@@ -10,7 +10,7 @@ Writes ``out/bench_query.json``, ``out/bench_query.png`` and ``out/bench_query.m
 
 Times are per frame, measured around each Python call (so they include ~2 µs of dispatch),
 plus the kernel-only mean of a whole replay inside numba (what a MuJoCo callback pays).
-Trees are cached in ``out/trees`` (rebuilt when the mesh changes).
+Trees come through mjist's content-hashed cache (``scripts/benchlib.py``).
 """
 from __future__ import annotations
 
@@ -26,8 +26,10 @@ import mujoco
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import tree_for  # noqa: E402
+
 import mjist  # noqa: E402
-from mjist import jaw  # noqa: E402
+from mjist.jaw import pair as jaw  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_JAW = ROOT.parent / "shared" / "data" / "jaw"
@@ -46,17 +48,9 @@ def pairs_available():
 SPARSE = False  # --sparse: trees built with mjist.build(..., sparse=True)
 
 
-def tree_for(path, eps, name, cache):
-    mesh = mjist.load_mesh(path)
-    f = cache / f"{name}_{eps:g}{'_sparse' if SPARSE else ''}.ist.npz"
-    try:
-        return mjist.load_tree(f, expect_hash=mesh.content_hash), mesh
-    except mjist.TreeFileError:
-        pass
-    print(f"  building {name} at ε {eps * 1e3:g} mm ...", flush=True)
-    t = mjist.build(mesh.trimesh(), max_error=eps, sparse=SPARSE)
-    t.save(f)
-    return t, mesh
+def _tree(path, eps):
+    tree, mesh, _ = tree_for(path, max_error=eps, sparse=SPARSE)
+    return tree, mesh
 
 
 def timed(fn, poses):
@@ -97,7 +91,7 @@ def floor_replay(q, poses, d):
     pairs whose lower bound is below the minimum, which every exact traversal of these two trees
     must open, so its time is a floor for any plain (non-coherent) distance query on them.
     Kernel time only (pose conversion and dispatch excluded, unlike the other rows)."""
-    from mjist import traverse as tv
+    from mjist.query import traverse as tv
 
     I = np.eye(4)
     xf = np.zeros(12)
@@ -209,7 +203,7 @@ def _errors(out, truth):
     return out
 
 
-def run_pair(label, folder, eps_list, frames, cache, decompose=True):
+def run_pair(label, folder, eps_list, frames, coacd_cache, decompose=True):
     mx, md, info = jaw.load_pair(folder)
     paths = (Path(info["paths"]["maxilla"]), Path(info["paths"]["mandible"]))
     print(f"[{label}] {paths[0]} + {paths[1]} (occlusion: {info['source']})", flush=True)
@@ -228,10 +222,10 @@ def run_pair(label, folder, eps_list, frames, cache, decompose=True):
         "coal": {**stats(coal_t), "colliding_frames": int((coal_d <= 0).sum())},
         "coal_times": coal_t.tolist(), "coal_distance": coal_d.tolist(), "levels": [],
     }
-    res["references"] = references(mx, md, poses, truth, cache.parent / "coacd", decompose)
+    res["references"] = references(mx, md, poses, truth, coacd_cache, decompose)
     for eps_a, eps_b in eps_list:
-        ta, _ = tree_for(paths[0], eps_a, f"{label}_maxilla", cache)
-        tb, _ = tree_for(paths[1], eps_b, f"{label}_mandible", cache)
+        ta, _ = _tree(paths[0], eps_a)
+        tb, _ = _tree(paths[1], eps_b)
         q = mjist.Query(ta, tb)
         lvl = {
             "eps_target": [eps_a, eps_b], "error_bound": q.error_bound,
@@ -248,7 +242,7 @@ def run_pair(label, folder, eps_list, frames, cache, decompose=True):
             q.reset()
             q.distance(I, poses[0], **kw)  # compile / warm
             q.reset()
-            ts, rs = timed(lambda a, b: q.distance(a, b, **kw), poses)
+            ts, rs = timed(lambda a, b, q=q, kw=kw: q.distance(a, b, **kw), poses)
             d = np.array([r.distance for r in rs])
             eb = np.array([r.error_bound for r in rs])
             viol = int(np.sum((truth > d + 1e-9) | (d - eb > truth + 1e-9)))
@@ -285,7 +279,7 @@ def run_pair(label, folder, eps_list, frames, cache, decompose=True):
                 raise AssertionError(f"distance_batch({m}) disagrees with per-call distance()")
         q.reset()
         q.contacts(I, poses[0])
-        ts, rs = timed(lambda a, b: q.contacts(a, b, max_contacts=4, split_depth=3), poses)
+        ts, rs = timed(lambda a, b, q=q: q.contacts(a, b, max_contacts=4, split_depth=3), poses)
         lvl["methods"]["multipoint"] = {**stats(ts), "contacts_mean": float(np.mean([r.count for r in rs])),
                                         "candidates_max": int(max(r.candidates for r in rs))}
         series["multipoint"] = ts
@@ -412,14 +406,12 @@ def main(argv=None):
     eps = [(4e-4, 4e-4)] if a.quick else [parse_eps(x) for x in a.eps.split(",")]
     frames = 400 if a.quick else a.frames
     out = Path(a.out)
-    cache = out / "trees"
-    cache.mkdir(parents=True, exist_ok=True)
     avail = pairs_available()
     want = [p for p in a.pairs.split(",") if p in avail]
     if not want:
         print(f"no jaw pair found (looked for {SHARED_JAW} and {jaw.BUNDLED})", file=sys.stderr)
         return 2
-    results = {p: run_pair(p, avail[p], eps, frames, cache, decompose=not a.quick) for p in want}
+    results = {p: run_pair(p, avail[p], eps, frames, out / "coacd", decompose=not a.quick) for p in want}
     meta = {"frames": frames, "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
             "mjist": mjist.__version__, "sparse": SPARSE, "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", 0) or 0)}
     (out / "bench_query.json").write_text(json.dumps({"meta": meta, "results": results}))

@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_query import CLENCH, coal_replay, stats, timed, write_outputs  # noqa: E402
 
 import mjist  # noqa: E402
-from mjist import jaw, jawmodel  # noqa: E402
+from mjist.jaw import generator as jawmodel  # noqa: E402
+from mjist.jaw import pair as jaw  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 FULL = {"spacings": [1.6, 1.1, 0.8, 0.5, 0.35], "max_error": 4e-4, "frames": 1000}
@@ -83,7 +84,7 @@ def run_resolution(spacing: float, cfg: dict, work: Path, timeout: float) -> dic
         q.reset()
         q.distance(I, poses[0], method=name)
         q.reset()
-        ts, rs = timed(lambda a, b: q.distance(a, b, method=name), poses)
+        ts, rs = timed(lambda a, b, name=name: q.distance(a, b, method=name), poses)
         d = np.array([r.distance for r in rs])
         eb = np.array([r.error_bound for r in rs])
         row["methods"][name] = {**stats(ts), "err_max": float(np.max(d - truth)),

@@ -19,9 +19,9 @@ import numpy as np
 from numba import njit, prange
 
 import mjist
-from mjist.bvh import BVH, STACK, sphere_within_xyz
-from mjist.mesh import load_mesh
-from mjist.voxelize import Voxelizer
+from mjist.builder.voxelize import Voxelizer
+from mjist.geometry.bvh import BVH, STACK, sphere_within_xyz
+from mjist.geometry.mesh import load_mesh
 
 EDGES_MM = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0, 4.0, np.inf)
 

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mjist import jaw, jawmodel
+from mjist.jaw import generator as jawmodel
+from mjist.jaw import pair as jaw
 
 ROOT = Path(__file__).resolve().parent.parent
 

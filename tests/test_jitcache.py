@@ -36,3 +36,20 @@ def test_the_package_stamp_matches_its_sources():
     pkg = Path(mjist.__file__).parent
     stamp = pkg / "__pycache__" / jitcache.STAMP
     assert stamp.read_text() == jitcache.sources_digest(pkg)
+
+
+def test_a_change_in_one_subpackage_drops_every_subpackages_kernels(tmp_path):
+    # the penalty cfunc of mujoco/forces.py inlines code of mujoco/hook.py and query/traverse.py
+    (tmp_path / "__init__.py").write_text("")
+    for sub in ("mujoco", "query"):
+        (tmp_path / sub / "__pycache__").mkdir(parents=True)
+        (tmp_path / sub / "__init__.py").write_text("")
+    (tmp_path / "query" / "traverse.py").write_text("z = 1\n")
+    (tmp_path / "mujoco" / "forces.py").write_text("y = 2\n")
+    kernel = tmp_path / "mujoco" / "__pycache__" / "forces.passive-1.py311.nbi"
+    assert jitcache.check(tmp_path)
+    kernel.write_bytes(b"cached")
+    assert not jitcache.check(tmp_path) and kernel.exists()
+    (tmp_path / "query" / "traverse.py").write_text("z = 2\n")
+    assert jitcache.check(tmp_path)
+    assert not kernel.exists()

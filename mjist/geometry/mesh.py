@@ -1,0 +1,227 @@
+"""Load a triangle mesh and check it can be filled with inner spheres.
+
+An Inner Sphere Tree needs a well-defined inside: the mesh must be closed (every edge
+shared by exactly two faces), consistently wound with outward normals, finite and free of
+degenerate faces. Several closed shells are fine (a maxilla has three, a dental arch of
+separate teeth has sixteen).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from ..errors import MeshError
+
+
+@dataclass
+class Mesh:
+    """A validated closed triangle mesh (float64 vertices, int64 faces)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    volume: float
+    area: float
+    shells: int
+    repairs: list = field(default_factory=list)
+
+    @property
+    def extents(self) -> np.ndarray:
+        return self.vertices.max(axis=0) - self.vertices.min(axis=0)
+
+    @property
+    def content_hash(self) -> str:
+        """SHA-256 of the vertex and face arrays (what a saved tree was built from)."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.vertices, dtype="<f8").tobytes())
+        h.update(np.ascontiguousarray(self.faces, dtype="<i8").tobytes())
+        return h.hexdigest()
+
+    def trimesh(self) -> trimesh.Trimesh:
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+
+def _to_trimesh(mesh) -> trimesh.Trimesh:
+    if isinstance(mesh, Mesh):
+        return mesh.trimesh()
+    if isinstance(mesh, trimesh.Trimesh):
+        tm = mesh
+    elif isinstance(mesh, (str, os.PathLike)):
+        path = os.fspath(mesh)
+        if not os.path.exists(path):
+            raise MeshError(f"mesh file {path!r} does not exist: check the path")
+        try:
+            loaded = trimesh.load(path, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types on unreadable files
+            raise MeshError(
+                f"could not read mesh file {path!r} ({type(exc).__name__}: {exc}); "
+                "use a valid STL, OBJ or PLY file"
+            ) from exc
+        if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+            raise MeshError(f"mesh file {path!r} holds no triangles: export the surface as a triangle mesh")
+        tm = loaded
+    elif isinstance(mesh, tuple) and len(mesh) == 2:
+        v = np.asarray(mesh[0], dtype=np.float64)
+        f = np.asarray(mesh[1])
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+            raise MeshError(
+                f"(vertices, faces) must have shapes (n, 3) and (m, 3), got {v.shape} and {f.shape}"
+            )
+        if not np.issubdtype(f.dtype, np.integer):
+            raise MeshError(f"faces must be integer vertex indices, got dtype {f.dtype}")
+        if f.size and (f.min() < 0 or f.max() >= len(v)):
+            raise MeshError(
+                f"faces index vertices outside 0..{len(v) - 1} (min {f.min()}, max {f.max()}): "
+                "fix the face array"
+            )
+        tm = trimesh.Trimesh(v, f.astype(np.int64), process=False)
+    else:
+        raise MeshError(
+            f"cannot use {type(mesh).__name__} as a mesh: pass a file path, a trimesh.Trimesh "
+            "or a (vertices, faces) tuple"
+        )
+    return tm
+
+
+def _finite(tm) -> trimesh.Trimesh:
+    """``tm`` checked for emptiness and non-finite coordinates, coincident vertices merged."""
+    v = np.asarray(tm.vertices, dtype=np.float64)
+    f = np.asarray(tm.faces, dtype=np.int64)
+    if len(f) == 0 or len(v) == 0:
+        raise MeshError("mesh is empty (no faces): pass a closed triangle surface")
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise MeshError(
+            f"mesh has {int(bad.sum())} vertices with NaN or infinite coordinates: "
+            "fix the export or drop those vertices and their faces"
+        )
+    tm = trimesh.Trimesh(v, f, process=False)
+    # geometric merge only (OBJ normals/uvs and STL soups split vertices)
+    tm.merge_vertices(merge_tex=True, merge_norm=True)
+    return tm
+
+
+def _drop_degenerate(tm, scale: float, repair: bool, repairs: list) -> None:
+    """Refuse zero-area faces, or remove them with ``repair``."""
+    tri = tm.vertices[tm.faces]
+    dbl_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    F = tm.faces
+    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
+    degenerate = repeated | (dbl_area <= 1e-14 * scale * scale)
+    if not degenerate.any():
+        return
+    if not repair:
+        raise MeshError(
+            f"mesh has {int(degenerate.sum())} degenerate (zero-area) faces: "
+            "pass repair=True (or --repair) to remove them, or clean the mesh"
+        )
+    tm.update_faces(~degenerate)
+    tm.remove_unreferenced_vertices()
+    repairs.append(f"removed {int(degenerate.sum())} degenerate faces")
+    tm.merge_vertices(merge_tex=True, merge_norm=True)
+
+
+def _edge_defects(tm) -> tuple[int, int]:
+    """Boundary edges (one face) and non-manifold edges (more than two faces)."""
+    _, counts = np.unique(np.sort(tm.edges, axis=1), axis=0, return_counts=True)
+    return int((counts == 1).sum()), int((counts > 2).sum())
+
+
+def _check_closed(tm, repair: bool, repairs: list) -> None:
+    """Refuse an open or non-manifold surface; with ``repair`` fill simple holes first."""
+    if tm.is_watertight:
+        return
+    boundary, nonmanifold = _edge_defects(tm)
+    if repair and nonmanifold == 0:
+        before = len(tm.faces)
+        trimesh.repair.fill_holes(tm)
+        if len(tm.faces) != before:
+            repairs.append(f"filled holes with {len(tm.faces) - before} faces")
+    if tm.is_watertight:
+        return
+    boundary, nonmanifold = _edge_defects(tm)
+    what = []
+    if boundary:
+        what.append(f"{boundary} open (boundary) edges")
+    if nonmanifold:
+        what.append(f"{nonmanifold} non-manifold edges shared by more than two faces")
+    fix = (
+        "close the holes (repair=True fills simple ones)"
+        if boundary and not nonmanifold
+        else "split or remesh the non-manifold parts (e.g. a manifold remesher), then retry"
+    )
+    raise MeshError(f"mesh is not closed: {', '.join(what)}. An inner sphere tree needs a watertight surface: {fix}")
+
+
+def _check_winding(tm, repair: bool, repairs: list) -> None:
+    """Refuse inconsistent face winding, or make it consistent with ``repair``."""
+    if tm.is_winding_consistent:
+        return
+    if not repair:
+        raise MeshError(
+            "mesh faces are not consistently wound (some normals point in, some out): "
+            "pass repair=True to fix the winding"
+        )
+    trimesh.repair.fix_winding(tm)
+    repairs.append("made face winding consistent")
+    if not tm.is_winding_consistent:
+        raise MeshError("could not make the face winding consistent: check the mesh for self-overlaps")
+
+
+def _outward_volume(tm, scale: float, repair: bool, repairs: list) -> float:
+    """The enclosed volume, refusing a flat surface and an inside-out one (flipped with ``repair``)."""
+    volume = float(tm.volume)
+    if abs(volume) <= 1e-12 * scale**3:
+        raise MeshError("mesh encloses no volume (flat or collapsed): pass a solid, closed surface")
+    if volume < 0:
+        if not repair:
+            raise MeshError(
+                "mesh is inside out (faces wound so normals point inward, negative volume): "
+                "pass repair=True to flip it, or invert the faces"
+            )
+        tm.invert()
+        repairs.append("flipped inverted faces (normals now point outward)")
+        volume = float(tm.volume)
+    return volume
+
+
+def load_mesh(mesh, *, repair: bool = False) -> Mesh:
+    """Load and validate a closed triangle mesh.
+
+    Parameters
+    ----------
+    mesh : str, path, trimesh.Trimesh, or (vertices, faces)
+        The surface. Files are read with trimesh (STL, OBJ, PLY, ...). Coincident vertices
+        are merged (STL and OBJ files with normals store them split); nothing else changes.
+    repair : bool
+        Try trimesh's repairs (drop degenerate faces, fix winding and inversion, fill
+        holes). What was changed is listed in ``Mesh.repairs``. A mesh still not closed
+        afterwards raises.
+
+    Raises
+    ------
+    MeshError
+        Empty, non-finite, degenerate, open, non-manifold, inconsistently wound, inverted
+        or zero-volume meshes; the message names the defect and the fix.
+    """
+    tm = _finite(_to_trimesh(mesh))
+    repairs: list[str] = []
+    scale = float(np.linalg.norm(tm.vertices.max(0) - tm.vertices.min(0)))
+    if scale == 0.0:
+        raise MeshError("mesh is degenerate: all vertices coincide")
+    _drop_degenerate(tm, scale, repair, repairs)
+    _check_closed(tm, repair, repairs)
+    _check_winding(tm, repair, repairs)
+    volume = _outward_volume(tm, scale, repair, repairs)
+    shells = len(trimesh.graph.connected_components(tm.face_adjacency, nodes=np.arange(len(tm.faces))))
+    return Mesh(
+        vertices=np.ascontiguousarray(tm.vertices, dtype=np.float64),
+        faces=np.ascontiguousarray(tm.faces, dtype=np.int64),
+        volume=volume,
+        area=float(tm.area),
+        shells=shells,
+        repairs=repairs,
+    )

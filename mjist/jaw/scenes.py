@@ -1,0 +1,311 @@
+"""MuJoCo scenes of a jaw pair: jaw closure by muscle-like actuators.
+
+The jaw frame is +y up, +z anterior, metres (``mjist.jaw``); MuJoCo's cameras and gravity are
++z up, so the whole jaw sits in a body rotated by 90° about x. The maxilla is fixed; the
+mandible hangs on a hinge through the condyles with two small slides (protrusion and
+lateral shift, soft springs standing in for the joint capsule), and four spatial tendons
+(masseter and temporalis, both sides) pull it closed through first-order activation
+dynamics, like muscles. ``models/jaw_closure.xml`` is this generator's output for the
+bundled jaws; ``jaw_closure_xml`` makes the same scene for any pair (e.g. the CBCT pair).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+OPEN_DEG = 8.0  # initial opening (keyframe "open")
+
+
+def _v(x) -> str:
+    return " ".join(f"{float(a):.6g}" for a in x)
+
+
+# mjist's <custom> settings after mjist_geoms and mjist_max_error: constraint contacts (closure,
+# search) or penalty forces with the virtual coupling (haptics)
+# Contact groups are subtrees at depth 5 (a few millimetres of a jaw), not 3 (about a
+# centimetre): a group holds one contact, its deepest leaf pair, and a depth-3 group can span
+# both slopes of a cusp; when the deepest pair moves from one slope to the other the contact
+# normal flips and a clenched jaw cycles between the two. At depth 5 it rests still.
+CONSTRAINT = ('    <text name="mjist_offset" data="mean"/>\n'
+              '    <numeric name="mjist_contacts" data="4"/>\n'
+              '    <numeric name="mjist_split_depth" data="5"/>')
+
+
+def _penalty(law: str) -> str:
+    return ('    <text name="mjist_mode" data="penalty"/>\n'
+            f'    <text name="mjist_penalty" data="{law}"/>\n'
+            '    <text name="mjist_offset" data="none"/>\n'
+            '    <text name="mjist_coupling" data="handle mandible"/>')
+
+
+def _settings(max_error, rest: str) -> str:
+    """The scenes' ``<custom>`` block: the jaw geoms, ``max_error`` when given, then ``rest``."""
+    me = f'\n    <numeric name="mjist_max_error" data="{max_error:g}"/>' if max_error else ""
+    return f'  <custom>\n    <text name="mjist_geoms" data="maxilla mandible"/>{me}\n{rest}\n  </custom>'
+
+
+def _assets(maxilla: str, mandible: str) -> str:
+    return f'  <asset>\n    <mesh name="maxilla" file="{maxilla}"/>\n    <mesh name="mandible" file="{mandible}"/>\n  </asset>'
+
+
+def jaw_closure_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0.0), *, half_width: float = 0.045,
+                    open_deg: float = OPEN_DEG, muscle_force: float = 40.0, meshdir: str | None = None,
+                    max_error: float | None = 5e-4, title: str = "bundled jaw pair") -> str:
+    """MJCF text of the jaw-closure scene.
+
+    Parameters
+    ----------
+    maxilla, mandible : str
+        Mesh files (relative to ``meshdir`` when given).
+    hinge : (3,)
+        Condyle centre in the mandible mesh's coordinates (jaw frame).
+    mandible_pos : (3,)
+        Translation of the mandible mesh in the ground-truth occlusion (jaw frame).
+    half_width : float
+        Half the distance between the condyles (places the muscles).
+    open_deg : float
+        Opening of the ``open`` keyframe.
+    muscle_force : float
+        Peak force of each of the four closing muscles (N).
+    max_error : float, optional
+        ``mjist_max_error`` written into the ``<custom>`` settings (metres).
+    """
+    h = np.asarray(hinge, float)
+    w = float(half_width)
+    # muscle attachment points, jaw frame, relative to the hinge (adult human proportions)
+    sites_world, sites_jaw = [], []
+    for side, sx in (("r", -1.0), ("l", 1.0)):
+        x = sx * 0.95 * w
+        sites_world.append((f"masseter_{side}_origin", h + (x - h[0], 0.004, 0.030)))
+        sites_jaw.append((f"masseter_{side}_insertion", h + (x - h[0], -0.050, 0.008)))
+        sites_world.append((f"temporalis_{side}_origin", h + (0.9 * x - h[0], 0.035, 0.002)))
+        sites_jaw.append((f"temporalis_{side}_insertion", h + (0.85 * x - h[0], -0.004, 0.020)))
+    p = np.asarray(mandible_pos, float)
+    sw = "\n".join(f'      <site name="{n}" pos="{_v(np.asarray(s) + p)}" size="0.002" rgba="0.8 0.2 0.2 1"/>' for n, s in sites_world)
+    sj = "\n".join(f'        <site name="{n}" pos="{_v(s)}" size="0.002" rgba="0.8 0.2 0.2 1"/>' for n, s in sites_jaw)
+    tendons = "\n".join(
+        f'    <spatial name="{m}_{s}" width="0.0015" rgba="0.75 0.25 0.25 1"><site site="{m}_{s}_origin"/>'
+        f'<site site="{m}_{s}_insertion"/></spatial>'
+        for m in ("masseter", "temporalis") for s in ("r", "l")
+    )
+    acts = "\n".join(
+        f'    <general name="{m}_{s}" tendon="{m}_{s}" dyntype="filter" dynprm="0.04" ctrlrange="0 1" '
+        f'gainprm="{-muscle_force:g}" biastype="none"/>'
+        for m in ("masseter", "temporalis") for s in ("r", "l")
+    )
+    md = f'\n  <compiler meshdir="{meshdir}"/>' if meshdir else ""
+    return f"""<mujoco model="jaw_closure">
+  <!-- Jaw closure ({title}): maxilla fixed, mandible on a condylar hinge with protrusive and
+       lateral play, closed by masseter and temporalis. Generated by mjist.scenes.jaw_closure_xml.
+       IST contacts: mjist.load_model(this file); native hull contacts: mujoco.MjModel.from_xml_path. -->{md}
+  <option timestep="0.001" integrator="implicitfast"/>
+  <visual><global offwidth="1600" offheight="900"/><quality shadowsize="4096"/></visual>
+{_settings(max_error, CONSTRAINT)}
+  <default>
+    <geom solref="0.004 1" solimp="0.95 0.99 0.0005" friction="0.3"/>
+  </default>
+{_assets(maxilla, mandible)}
+  <worldbody>
+    <light pos="0 -0.4 0.3" dir="0 1 -0.6" diffuse="0.8 0.8 0.8"/>
+    <light pos="0.3 -0.2 0.4" dir="-0.5 0.4 -0.8" diffuse="0.4 0.4 0.4"/>
+    <body name="skull" euler="90 0 0">
+      <geom name="maxilla" type="mesh" mesh="maxilla" rgba="0.93 0.87 0.76 1"/>
+{sw}
+      <body name="mandible" pos="{_v(p)}">
+        <joint name="hinge" type="hinge" axis="1 0 0" pos="{_v(h)}" range="-3 25" damping="0.02"/>
+        <joint name="protrusion" type="slide" axis="0 0 1" pos="{_v(h)}" range="-0.003 0.003" stiffness="300" damping="2"/>
+        <joint name="lateral" type="slide" axis="1 0 0" pos="{_v(h)}" range="-0.003 0.003" stiffness="300" damping="2"/>
+        <geom name="mandible" type="mesh" mesh="mandible" density="1900" rgba="0.75 0.82 0.93 1"/>
+{sj}
+      </body>
+    </body>
+  </worldbody>
+  <tendon>
+{tendons}
+  </tendon>
+  <actuator>
+{acts}
+  </actuator>
+  <keyframe>
+    <key name="open" qpos="{np.radians(open_deg):.6g} 0 0"/>
+    <key name="occlusion" qpos="0 0 0"/>
+  </keyframe>
+</mujoco>
+"""
+
+
+def jaw_to_world(R, t):
+    """A jaw-frame pose (+y up) as MuJoCo world pose (+z up): the scene's 90° turn about x."""
+    Rx = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    return Rx @ R, Rx @ t
+
+
+def mandible_pose(hinge, mandible_pos, hinge_deg=0.0, offset=(0.0, 0.0, 0.0)):
+    """World pose (R, t) of the mandible body: opened by ``hinge_deg`` about the condylar axis,
+    then moved by ``offset`` (jaw frame: x lateral, y up, z anterior), from the occlusion."""
+    a = np.radians(hinge_deg)
+    c, s = np.cos(a), np.sin(a)
+    Rh = np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+    h = np.asarray(hinge, float)
+    t = np.asarray(mandible_pos, float) + h - Rh @ h + np.asarray(offset, float)
+    return jaw_to_world(Rh, t)
+
+
+def _quat(R) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
+
+
+def haptic_jaw_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0.0), *, open_deg: float = 3.0,
+                   max_error: float | None = 5e-4, law: str = "contacts", meshdir: str | None = None,
+                   title: str = "bundled jaw pair") -> str:
+    """MJCF text of the haptic scene: a free mandible driven by a mocap handle through a virtual coupling.
+
+    The maxilla is fixed; the mandible is a free body (no gravity: the device carries it); the
+    ``handle`` mocap body is the haptic device; ``mjist_coupling`` couples the two with a 6-DoF
+    spring–damper whose force the device displays; the jaw pair is a penalty pair
+    (``mjist_mode="penalty"``, law ``law``) with offset ``none``, so a non-zero contact force
+    always means the meshes intersect.
+    """
+    Ro, to = mandible_pose(hinge, mandible_pos, open_deg)
+    Rc, tc = mandible_pose(hinge, mandible_pos, 0.0)
+    qo, qc = _quat(Ro), _quat(Rc)
+    md = f'\n  <compiler meshdir="{meshdir}"/>' if meshdir else ""
+    return f"""<mujoco model="haptic_jaw">
+  <!-- Haptic jaw ({title}): the maxilla is fixed, the mandible is a free body driven by the
+       haptic device's handle (a mocap body) through a 6-DoF virtual coupling; tooth contact is
+       rendered as IST penalty forces. Generated by mjist.scenes.haptic_jaw_xml; run it with
+       `mjist haptic` (or mjist.load_model + mj_step, moving data.mocap_pos/quat). -->{md}
+  <option timestep="0.001" gravity="0 0 0"/>
+  <visual><global offwidth="1600" offheight="900"/></visual>
+{_settings(max_error, _penalty(law))}
+{_assets(maxilla, mandible)}
+  <worldbody>
+    <light pos="0 -0.4 0.3" dir="0 1 -0.6" diffuse="0.8 0.8 0.8"/>
+    <body name="skull" euler="90 0 0">
+      <geom name="maxilla" type="mesh" mesh="maxilla" rgba="0.93 0.87 0.76 1"/>
+      <site name="hinge" pos="{_v(np.asarray(mandible_pos, float) + np.asarray(hinge, float))}" size="0.002"/>
+    </body>
+    <body name="mandible" pos="{_v(to)}" quat="{_v(qo)}">
+      <freejoint name="mandible"/>
+      <geom name="mandible" type="mesh" mesh="mandible" density="1900" rgba="0.75 0.82 0.93 1"/>
+    </body>
+    <body name="handle" mocap="true" pos="{_v(to)}" quat="{_v(qo)}">
+      <geom type="sphere" size="0.003" contype="0" conaffinity="0" rgba="0.9 0.3 0.2 0.6"/>
+    </body>
+  </worldbody>
+  <keyframe>
+    <key name="open" qpos="{_v(to)} {_v(qo)}" mpos="{_v(to)}" mquat="{_v(qo)}"/>
+    <key name="occlusion" qpos="{_v(tc)} {_v(qc)}" mpos="{_v(tc)}" mquat="{_v(qc)}"/>
+  </keyframe>
+</mujoco>
+"""
+
+
+def occlusion_search_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0.0), *, closing: float = 30.0,
+                         lin_damping: float = 3.0, ang_damping: float = 0.003, tmj_timeconst: float = 0.01,
+                         max_error: float | None = 5e-4, meshdir: str | None = None, title: str = "bundled jaw pair") -> str:
+    """MJCF text of the occlusion-search scene: a free, damped mandible pulled onto the maxilla.
+
+    ``closing`` (m/s²) is the closing acceleration standing in for the elevator muscles (the
+    scene's gravity points from the mandible to the maxilla); the free joint's damping settles
+    the mandible where the cusps hold it. IST constraint contacts (offset ``mean``), low friction
+    (wet enamel), so the cusps can guide it into intercuspation.
+    """
+    Rc, tc = mandible_pose(hinge, mandible_pos, 0.0)
+    qc = _quat(Rc)
+    md = f'\n  <compiler meshdir="{meshdir}"/>' if meshdir else ""
+    return f"""<mujoco model="occlusion_search">
+  <!-- Occlusion search ({title}): the maxilla is fixed, the mandible is a free body pulled
+       towards it (gravity stands in for the closing muscles) and damped, so it settles where
+       the teeth hold it. Generated by mjist.scenes.occlusion_search_xml; used by
+       mjist.occlusion.search / `mjist occlusion`. -->{md}
+  <option timestep="0.001" integrator="implicitfast" gravity="0 0 {closing:g}"/>
+  <visual><global offwidth="1600" offheight="900"/></visual>
+{_settings(max_error, CONSTRAINT)}
+  <default>
+    <geom solref="0.004 1" solimp="0.95 0.99 0.0005" friction="0.1"/>
+  </default>
+{_assets(maxilla, mandible)}
+  <worldbody>
+    <light pos="0 -0.4 0.3" dir="0 1 -0.6" diffuse="0.8 0.8 0.8"/>
+    <body name="skull" euler="90 0 0">
+      <geom name="maxilla" type="mesh" mesh="maxilla" rgba="0.93 0.87 0.76 1"/>
+      <site name="hinge" pos="{_v(np.asarray(mandible_pos, float) + np.asarray(hinge, float))}" size="0.002"/>
+    </body>
+    <body name="mandible">
+      <!-- a free joint's damping is one number for translation and rotation; separate joints
+           damp each with its own time constant (about 0.1 s for this jaw's mass and inertia).
+           The body frame is the world frame at qpos 0; the geom carries the occlusion pose. -->
+      <joint name="x" type="slide" axis="1 0 0" damping="{lin_damping:g}"/>
+      <joint name="y" type="slide" axis="0 1 0" damping="{lin_damping:g}"/>
+      <joint name="z" type="slide" axis="0 0 1" damping="{lin_damping:g}"/>
+      <joint name="rotation" type="ball" damping="{ang_damping:g}"/>
+      <geom name="mandible" type="mesh" mesh="mandible" pos="{_v(tc)}" quat="{_v(qc)}" density="1900" rgba="0.75 0.82 0.93 1"/>
+    </body>
+  </worldbody>
+  <equality>
+    <!-- the temporomandibular joints seat the condyles in their fossae: a soft ball joint at the
+         condylar axis' centre (it yields, so the teeth, not the joint, decide the final pose) -->
+    <connect name="tmj" body1="mandible" body2="skull" anchor="{_v(jaw_to_world(np.eye(3), np.asarray(mandible_pos, float) + np.asarray(hinge, float))[1])}" solref="{tmj_timeconst:g} 1"/>
+  </equality>
+  <keyframe>
+    <key name="occlusion" qpos="0 0 0 1 0 0 0"/>
+  </keyframe>
+</mujoco>
+"""
+
+
+def muscle_half_width(mandible_vertices) -> float:
+    """Half the distance between the closing muscles' insertions: 85 % of the mandible's half width."""
+    x = np.asarray(mandible_vertices)[:, 0]
+    return 0.5 * float(x.max() - x.min()) * 0.85
+
+
+def pair_scene(folder, out_dir, kind: str, **kwargs):
+    """Write the ``kind`` scene ("closure", "occlusion" or "haptic") of the jaw pair in ``folder``
+    (absolute mesh paths, its hinge and occlusion, ``max_error`` 0.3 mm unless given) as
+    ``out_dir/<scene>.xml``; return the path. ``kwargs`` go to the scene's writer."""
+    import os
+    from pathlib import Path
+
+    from .pair import load_pair
+
+    kinds = {"closure": (jaw_closure_xml, "jaw_closure.xml"), "occlusion": (occlusion_search_xml, "occlusion_search.xml"),
+             "haptic": (haptic_jaw_xml, "haptic_jaw.xml")}
+    if kind not in kinds:
+        raise ValueError(f"scene kind {kind!r} must be one of {', '.join(kinds)}")
+    make_xml, filename = kinds[kind]
+    _, md, info = load_pair(folder)
+    kwargs.setdefault("max_error", 3e-4)
+    if kind == "closure":
+        kwargs.setdefault("half_width", muscle_half_width(md.vertices))
+    xml = make_xml(os.path.abspath(info["paths"]["maxilla"]), os.path.abspath(info["paths"]["mandible"]),
+                   np.asarray(info["hinge"], float), info["mandible_pose"][:3, 3], title=f"jaw pair of {folder}", **kwargs)
+    os.makedirs(out_dir, exist_ok=True)
+    path = Path(out_dir) / filename
+    path.write_text(xml)
+    return path
+
+
+def reference_pose(model, key: str = "occlusion", body: str = "mandible", site: str = "hinge"):
+    """The mandible at a scene's reference keyframe: body position, quaternion (w-first),
+    rotation matrix, the hinge site's position and its frame (column 0: the hinge axis; the
+    columns are the jaw frame's axes in the world). Raises ``ValueError`` naming what is missing."""
+    import mujoco
+
+    k = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key)
+    s = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+    b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    if k < 0:
+        raise ValueError(f"the scene needs a {key!r} keyframe (the mandible's reference pose)")
+    if s < 0:
+        raise ValueError(f"the scene needs a {site!r} site on the condylar axis (see mjist.scenes)")
+    if b < 0:
+        raise ValueError(f"the scene needs a body named {body!r}")
+    d = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, d, k)
+    mujoco.mj_forward(model, d)
+    return (d.xpos[b].copy(), d.xquat[b].copy(), d.xmat[b].reshape(3, 3).copy(), d.site_xpos[s].copy(),
+            d.site_xmat[s].reshape(3, 3).copy())

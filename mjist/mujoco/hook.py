@@ -1,0 +1,598 @@
+"""The collision function MuJoCo calls for IST-managed geom pairs (numba cfuncs).
+
+One cfunc per collision-table slot (mesh-mesh, mesh-sdf, sdf-sdf, and sphere, capsule,
+cylinder, box against mesh: ``mjist.query.primitive``). MuJoCo's narrow phase
+calls it as ``int f(const mjModel* m, mjData* d, mjPreContact* con, int g1, int g2,
+mjtNum margin)``; no Python runs. It looks ``m`` up in the registry (``registry.py`` writes
+it, ``layout.py`` declares its words), and for a managed pair:
+
+1. poses of ``g1``, ``g2`` from ``d->geom_xpos/xmat`` (tree frame == MuJoCo's mesh frame);
+2. the motion-bound skip: if last full distance query of this (MjData, pair) minus the
+   relative motion since then still exceeds ``margin + offset``, no contact is possible;
+3. multipoint traversal with threshold ``margin + offset``, seeded by last frame's groups;
+4. the deepest then farthest-apart ``cap`` contacts into ``con`` — never more than the
+   pair's ``mj_maxContact`` (more corrupts MuJoCo's heap);
+5. when nothing is in contact and skipping is on, a backtracking distance query refreshes
+   the skip reference.
+
+Scratch memory comes from MuJoCo's own per-``mjData`` stack (``mj_stackAllocByte``), the
+coherence state from a per-model table of (MjData, pair) slots claimed with an atomic
+compare-and-swap, so several MjData on several threads never share anything writable.
+The state only prunes work: every answer equals a fresh query's (up to exact ties), so
+rollouts are deterministic whatever the threads. Nothing here raises; problems are counted.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import carray, cfunc, njit, types
+
+from ..query import primitive as cp
+from ..query import traverse as tv
+from ..query.select import spread
+from . import abi
+from .layout import (
+    C_BADPOSE,
+    C_CALLS,
+    C_CONTACT_CALLS,
+    C_CONTACTS,
+    C_FALLBACK,
+    C_FRONT,
+    C_GROUPS,
+    C_NOSTACK,
+    C_PRIM_CALLS,
+    C_PRIM_CONTACTS,
+    C_REFRESH,
+    C_SKIPPED,
+    C_STATELESS,
+    C_VISITS,
+    E_ALLOC,
+    E_CAP,
+    E_COUNT,
+    E_EPS,
+    E_FREE,
+    E_FSTATE,
+    E_GPRIM,
+    E_GSLOT,
+    E_ISTATE,
+    E_KEYS,
+    E_MARK,
+    E_NARENA,
+    E_NCAND,
+    E_NGEOM,
+    E_NMAN,
+    E_NPRIM,
+    E_NSLOT,
+    E_NUP,
+    E_OFFSET,
+    E_PARENA,
+    E_PCAP,
+    E_POFF,
+    E_POOL,
+    E_PRIM,
+    E_PSTACK,
+    E_SKIP,
+    E_SPLIT,
+    E_STACK,
+    E_TIME,
+    E_TREES,
+    E_WORDS,
+    E_XMAT,
+    E_XPOS,
+    F_D,
+    F_FOK,
+    F_FT0,
+    F_FTHR,
+    F_FXF,
+    F_LOK,
+    F_LXF,
+    F_MARGIN,
+    F_OK,
+    F_REF,
+    F_TIME,
+    FW,
+    I_FRONT,
+    I_NFRONT,
+    I_NPREV,
+    I_PAIR,
+    I_PREV,
+    IW,
+    KP,
+    MAX_MODELS,
+    N_COUNT,
+    NG,
+    PAIR_GEOM_W,
+    POSE_W,
+    PRIM_F,
+    ROOT_MODELS,
+    ROOT_N,
+    ROOT_ORIG,
+    ROOT_WORDS,
+    STACK_RESERVE,
+    pair_floats,
+    pair_ints,
+    pair_scratch_bytes,
+    prim_floats,
+    prim_ints,
+    prim_scratch_bytes,
+    slot_key,
+)
+
+SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of ε1+ε2, x last step's motion
+
+
+@njit(cache=True, inline="always")
+def model_entry(m):
+    """Address of the registry entry of model ``m`` (0: not attached)."""
+    root_addr = abi.registry_root()
+    if root_addr == 0:
+        return 0
+    root = carray(abi.i64_ptr(root_addr), ROOT_WORDS)
+    n = root[ROOT_N]
+    for i in range(min(n, MAX_MODELS)):
+        if root[ROOT_MODELS + 2 * i] == m:
+            return root[ROOT_MODELS + 2 * i + 1]
+    return 0
+
+
+@njit(cache=True, inline="always")
+def geom_pose(xpos, xmat, g, P):
+    """``P`` = 4x4 world pose of geom ``g`` from mjData's ``geom_xpos``/``geom_xmat`` arrays."""
+    for i in range(3):
+        for j in range(3):
+            P[i, j] = xmat[9 * g + 3 * i + j]
+        P[i, 3] = xpos[3 * g + i]
+    P[3, 0] = 0.0
+    P[3, 1] = 0.0
+    P[3, 2] = 0.0
+    P[3, 3] = 1.0
+
+
+@njit(cache=True, inline="always")
+def claim_slot(E, d, p, nslot, other):
+    """Index of the (d, pair) state slot (its second one if ``other``), claimed on first use;
+    -1 when the table is full."""
+    key = slot_key(d, p, other)
+    keys_addr = E[E_KEYS]
+    keys = carray(abi.i64_ptr(keys_addr), nslot)
+    h = ((d >> 4) ^ (p * 2654435761) ^ (other * 40503)) % nslot
+    for k in range(nslot):
+        i = (h + k) % nslot
+        cur = keys[i]
+        if cur == key:
+            return i, False
+        if cur == 0:
+            old = abi.cas_i64(keys_addr + 8 * i, 0, key)
+            if old == 0:
+                return i, True
+            if old == key:  # pragma: no cover - only this thread uses this key
+                return i, False
+    return -1, False
+
+
+@njit(cache=True, inline="always")
+def stack_room(E, d, need):
+    """Whether MuJoCo's stack of ``d`` can give ``need`` bytes and keep STACK_RESERVE free.
+
+    The arena fields read here describe the caller's stack only without a thread pool; with
+    one, MuJoCo gives each thread its own stack and the check is left to it.
+    """
+    if abi.load_i64(d + E[E_POOL]) != 0:
+        return True
+    free = abi.load_i64(d + E[E_NARENA]) - abi.load_i64(d + E[E_PSTACK]) - abi.load_i64(d + E[E_PARENA])
+    return free >= need + STACK_RESERVE
+
+
+@njit(cache=True)
+def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
+    """Contacts of a managed pair into ``con``; returns the count (0..cap)."""
+    nman = E[E_NMAN]
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
+    ka = gslot[g1]
+    kb = gslot[g2]
+    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
+    Na = carray(abi.f64_ptr(trees[3 * ka]), (trees[3 * ka + 1], 8))
+    Nb = carray(abi.f64_ptr(trees[3 * kb]), (trees[3 * kb + 1], 8))
+    offset = carray(abi.f64_ptr(E[E_OFFSET]), nman * nman)[p]
+    eps = carray(abi.f64_ptr(E[E_EPS]), nman * nman)[p]
+    thr = margin + offset
+
+    # scratch (layout.pair_floats, layout.pair_ints): float64 poses, stack values, candidate
+    # values, dmin, geometry rows, a stateless slot, the blend accumulator; then int64 stack
+    # pairs, candidates, chosen, closest pair, a stateless slot
+    ns = E[E_STACK]
+    nc = E[E_NCAND]
+    nf = pair_floats(ns, nc)
+    f = carray(abi.f64_ptr(scratch), nf)
+    Pa = f[0:16].reshape((4, 4))
+    Pb = f[16:32].reshape((4, 4))
+    xf = f[32:POSE_W]
+    sv = f[POSE_W:POSE_W + ns]
+    o = POSE_W + ns
+    cval = f[o:o + nc]
+    dmin = f[o + nc:o + 2 * nc]
+    o += 2 * nc
+    geom = f[o:o + PAIR_GEOM_W * nc].reshape((nc, PAIR_GEOM_W))
+    o += PAIR_GEOM_W * nc
+    fs_local = f[o:o + FW]
+    bacc = f[o + FW:o + FW + tv.BLEND_W]
+    iw = carray(abi.i64_ptr(scratch + 8 * nf), pair_ints(ns, nc, cap))
+    st = iw[0:2 * ns].reshape((ns, 2))
+    cand = iw[2 * ns:2 * ns + 4 * nc].reshape((nc, 4))
+    chosen = iw[2 * ns + 4 * nc:2 * ns + 4 * nc + cap]
+    pair = iw[2 * ns + 4 * nc + cap:2 * ns + 4 * nc + cap + 2]
+    is_local = iw[2 * ns + 4 * nc + cap + 2:2 * ns + 4 * nc + cap + 2 + IW]
+
+    xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
+    xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
+    geom_pose(xpos, xmat, g1, Pa)
+    geom_pose(xpos, xmat, g2, Pb)
+    if not tv.relative_pose(Pa, Pb, xf):
+        count[C_BADPOSE] += 1
+        return 0
+    ist, fst = _slot_state(E, d, p, margin, Na.shape[0], Nb.shape[0], is_local, fs_local, count)
+
+    # motion of B relative to A since the last call sizes the front's slack
+    step = 0.0
+    if fst[F_LOK] > 0.0:
+        step = tv.motion_bound(fst[F_LXF:F_LXF + 12], xf, Nb[0, 0:3], Nb[0, 3])
+    for k in range(12):
+        fst[F_LXF + k] = xf[k]
+    fst[F_LOK] = 1.0
+
+    skip = E[E_SKIP] != 0
+    if skip and fst[F_OK] > 0.0:
+        mb = tv.motion_bound(fst[F_REF:F_REF + 12], xf, Nb[0, 0:3], Nb[0, 3])
+        if fst[F_D] - mb >= thr:
+            count[C_SKIPPED] += 1
+            return 0
+    n, code, use_front = _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, pair, count)
+    if code != tv.OK:
+        ist[I_NPREV] = 0
+        fst[F_FOK] = 0.0
+        count[C_FALLBACK] += 1
+        return 0
+    prev = ist[I_PREV:I_PREV + 4 * KP].reshape((KP, 4))
+    keep = min(n, KP)
+    for i in range(keep):
+        for c in range(4):
+            prev[i, c] = cand[i, c]
+    ist[I_NPREV] = keep
+    if n == 0:
+        if skip and not use_front:
+            _refresh_skip(Na, Nb, xf, ist, fst, st, sv, pair)
+        return 0
+    fst[F_OK] = 0.0
+    k = tv.select_spread(Na, Nb, xf, cand, cval, n, cap, chosen, geom, dmin)
+    _write_contacts(E, Na, Nb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con, cap, count)
+    ist[I_PAIR] = cand[chosen[0], 2]
+    ist[I_PAIR + 1] = cand[chosen[0], 3]
+    count[C_CONTACT_CALLS] += 1
+    count[C_CONTACTS] += k
+    return k
+
+
+@njit(cache=True)
+def _slot_state(E, d, p, margin, na, nb, is_local, fs_local, count):
+    """The (int, float) coherence state of this (MjData, pair), claimed or reset as needed.
+
+    The state is only valid along one trajectory (time never decreases), so a reset or a new
+    MjData at a recycled address starts fresh. It serves one margin: mj_collision passes the
+    pair's, mj_geomDistance its distmax, and a distance query between two steps would otherwise
+    reset the steps' front and seeds (the answers stay the same, the work does not): calls with
+    another margin get a second slot. A full table gives the scratch's stateless slot.
+    """
+    nslot = E[E_NSLOT]
+    now = abi.load_f64(d + E[E_TIME])
+    s, fresh = claim_slot(E, d, p, nslot, 0)
+    if s >= 0:
+        fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+        if not fresh and not (fst[F_TIME] <= now):
+            fresh = True
+        if not fresh and fst[F_MARGIN] != margin:
+            s, fresh = claim_slot(E, d, p, nslot, 1)
+            if s >= 0:
+                fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+                if not fresh and not (fst[F_TIME] <= now):
+                    fresh = True
+    if s >= 0:
+        ist = carray(abi.i64_ptr(E[E_ISTATE] + 8 * IW * s), IW)
+    else:
+        count[C_STATELESS] += 1
+        ist = is_local
+        fst = fs_local
+        fresh = True
+    if fresh:
+        ist[I_PAIR] = -1
+        ist[I_PAIR + 1] = -1
+        ist[I_NPREV] = 0
+        ist[I_NFRONT] = 0
+        fst[F_OK] = 0.0
+        fst[F_FOK] = 0.0
+        fst[F_LOK] = 0.0
+        fst[F_MARGIN] = margin
+    fst[F_TIME] = now
+    if ist[I_PAIR] < 0 or ist[I_PAIR] >= na or ist[I_PAIR + 1] < 0 or ist[I_PAIR + 1] >= nb:
+        ist[I_PAIR] = -1
+        ist[I_PAIR + 1] = -1
+    return ist, fst
+
+
+@njit(cache=True)
+def _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, pair, count):
+    """The contact groups below ``thr`` into ``cand``/``cval``: ``(n, code, use_front)``.
+
+    From the front when the motion since its refresh keeps it valid (at the refresh pose every
+    leaf pair below T0 lay in one of its groups; a pair below thr now moved by at most mb, so it
+    was below thr + mb < T0 then); else a multipoint traversal seeded by last frame's groups,
+    with a slack that refreshes the front.
+    """
+    na = Na.shape[0]
+    nb = Nb.shape[0]
+    n_prev = min(max(ist[I_NPREV], 0), KP)
+    prev = ist[I_PREV:I_PREV + 4 * KP].reshape((KP, 4))
+    front = ist[I_FRONT:I_FRONT + 4 * NG].reshape((NG, 4))
+    use_front = False
+    if skip and fst[F_FOK] > 0.0 and fst[F_FTHR] == thr:
+        mb = tv.motion_bound(fst[F_FXF:F_FXF + 12], xf, Nb[0, 0:3], Nb[0, 3])
+        use_front = mb < fst[F_FT0] - thr
+    if use_front:
+        count[C_FRONT] += 1
+        n, code, visits = tv.front_search(Na, Nb, xf, st, sv, front, ist[I_NFRONT], thr, cand, cval, pair)
+    else:
+        for k in range(n_prev):
+            if not (0 <= prev[k, 0] < na and 0 <= prev[k, 1] < nb and 0 <= prev[k, 2] < na and 0 <= prev[k, 3] < nb):
+                n_prev = 0
+                break
+        slack = min(max(SLACK_MOTION * step, SLACK_MIN * eps), SLACK_MAX * eps) if skip else 0.0
+        t0 = thr + slack
+        n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[E_SPLIT], t0, prev, n_prev, cand, cval, pair)
+        fst[F_FOK] = 0.0
+        if code == tv.OK and skip and n < min(NG, cand.shape[0]):
+            count[C_REFRESH] += 1
+            for i in range(n):
+                for c in range(4):
+                    front[i, c] = cand[i, c]
+            ist[I_NFRONT] = n
+            for k in range(12):
+                fst[F_FXF + k] = xf[k]
+            fst[F_FT0] = t0
+            fst[F_FTHR] = thr
+            fst[F_FOK] = 1.0
+        # keep only the contacts (below thr) among the front's groups
+        m = 0
+        for i in range(n):
+            if cval[i] < thr:
+                for c in range(4):
+                    cand[m, c] = cand[i, c]
+                cval[m] = cval[i]
+                m += 1
+        n = m
+    count[C_VISITS] += visits
+    count[C_GROUPS] += ist[I_NFRONT]
+    return n, code, use_front
+
+
+@njit(cache=True)
+def _refresh_skip(Na, Nb, xf, ist, fst, st, sv, pair):
+    """Nothing in contact: the far-skip reference becomes the true IST distance (backtracking
+    from last frame's closest pair)."""
+    if ist[I_PAIR] >= 0:
+        pair[0] = ist[I_PAIR]
+        pair[1] = ist[I_PAIR + 1]
+        best, code, _ = tv.min_distance_backtrack(Na, Nb, xf, st, sv, 0.0, pair, -np.inf)
+    else:
+        best, code, _ = tv.min_distance(Na, Nb, xf, st, sv, np.inf, 0.0, pair, -np.inf)
+    if code == tv.OK:
+        ist[I_PAIR] = pair[0]
+        ist[I_PAIR + 1] = pair[1]
+        for k in range(12):
+            fst[F_REF + k] = xf[k]
+        fst[F_D] = best
+        fst[F_OK] = 1.0
+
+
+@njit(cache=True)
+def _write_contacts(E, Na, Nb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con, cap, count):
+    """The ``k`` chosen candidates as MuJoCo contacts (world frame) into ``con``."""
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    for j in range(k):
+        i = chosen[j]
+        g = geom[i]
+        tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[E_NUP])  # robust to deep, thin overlaps
+        if E[E_NUP] > 0 and cval[i] < thr:
+            count[C_VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP],
+                                            bacc, pair, g)
+        row = out[j]
+        row[0] = cval[i] - offset
+        for r in range(3):
+            row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
+            row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
+            row[7 + r] = 0.0
+
+
+@njit(cache=True)
+def _blend_group(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair, g):
+    """Penalty mode: the group's normal and point (``g[0:3]``, ``g[9:12]``) become the means of
+    its leaf pairs below ``cut`` (``traverse.blend``), so its force turns continuously when
+    another spot of the group becomes the deepest. Left as they are if the means degenerate.
+    Returns the node pairs visited."""
+    code, visits = tv.blend(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair)
+    if code != tv.OK or not acc[0] > 0.0:
+        return visits
+    nn = math.sqrt(acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
+    if not nn > 1e-9 * acc[0]:  # opposite normals cancel: keep the deepest pair's
+        return visits
+    for r in range(3):
+        g[r] = acc[1 + r] / nn
+        g[9 + r] = acc[4 + r] / acc[0]
+    return visits
+
+
+@njit(cache=True)
+def _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, scratch):
+    """Contacts of tree ``k`` (geom ``gm``) against primitive ``pi`` (geom ``gp``); returns the count.
+
+    ``mesh_first``: MuJoCo passed the mesh as geom1, so the normal (primitive → mesh) flips.
+    """
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    nman = E[E_NMAN]
+    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
+    N = carray(abi.f64_ptr(trees[3 * k]), (trees[3 * k + 1], 8))
+    prim = carray(abi.f64_ptr(E[E_PRIM]), (E[E_NPRIM], 4))
+    offset = carray(abi.f64_ptr(E[E_POFF]), E[E_NPRIM] * nman)[pi * nman + k]
+    ns = E[E_STACK]
+    nc = E[E_NCAND]
+    # scratch (float64): Pm, Pp (16 each), xf (12), q (6), values, dmin, geometry rows;
+    # then int64: stack, candidates (group, leaf), chosen
+    nf = prim_floats(nc)
+    f = carray(abi.f64_ptr(scratch), nf)
+    Pm = f[0:16].reshape((4, 4))
+    Pp = f[16:32].reshape((4, 4))
+    xf = f[32:44]
+    q = f[44:50]
+    cval = f[PRIM_F:PRIM_F + nc]
+    dmin = f[PRIM_F + nc:PRIM_F + 2 * nc]
+    geom = f[PRIM_F + 2 * nc:nf].reshape((nc, cp.GEOM_W))
+    iw = carray(abi.i64_ptr(scratch + 8 * nf), prim_ints(ns, nc, cap))
+    st = iw[0:ns]
+    cand = iw[ns:ns + 2 * nc].reshape((nc, 2))
+    chosen = iw[ns + 2 * nc:ns + 2 * nc + cap]
+    xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
+    xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
+    geom_pose(xpos, xmat, gm, Pm)
+    geom_pose(xpos, xmat, gp, Pp)
+    if not tv.relative_pose(Pp, Pm, xf):  # tree frame -> primitive frame
+        count[C_BADPOSE] += 1
+        return 0
+    n, code, visits = cp.tree_contacts(N, int(prim[pi, 0]), prim[pi, 1], prim[pi, 2], prim[pi, 3], xf,
+                                       margin + offset, E[E_SPLIT], st, cand, cval, geom, q)
+    count[C_VISITS] += visits
+    if code != tv.OK:
+        count[C_FALLBACK] += 1
+        return 0
+    if n == 0:
+        return 0
+    k_out = spread(geom, 3, cval, n, cap, chosen, dmin)  # contact points at columns 3..5
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    sign = -1.0 if mesh_first else 1.0
+    for j in range(k_out):
+        i = chosen[j]
+        row = out[j]
+        row[0] = cval[i] - offset
+        for r in range(3):
+            row[1 + r] = Pp[r, 0] * geom[i, 3] + Pp[r, 1] * geom[i, 4] + Pp[r, 2] * geom[i, 5] + Pp[r, 3]
+            row[4 + r] = sign * (Pp[r, 0] * geom[i, 0] + Pp[r, 1] * geom[i, 1] + Pp[r, 2] * geom[i, 2])
+            row[7 + r] = 0.0
+    count[C_PRIM_CONTACTS] += k_out
+    return k_out
+
+
+@njit(cache=True, inline="always")
+def _collide_prim(E, d, con, g1, g2, ka, kb, margin):
+    """The primitive path of ``collide``; -1 when the pair is not ours."""
+    ngeom = E[E_NGEOM]
+    gprim = carray(abi.i64_ptr(E[E_GPRIM]), ngeom)
+    if ka >= 0 and gprim[g2] >= 0:
+        gm, gp, k, pi, mesh_first = g1, g2, ka, gprim[g2], True
+    elif kb >= 0 and gprim[g1] >= 0:
+        gm, gp, k, pi, mesh_first = g2, g1, kb, gprim[g1], False
+    else:
+        return -1
+    nman = E[E_NMAN]
+    cap = carray(abi.i64_ptr(E[E_PCAP]), E[E_NPRIM] * nman)[pi * nman + k]
+    if cap <= 0:
+        return -1
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    count[C_PRIM_CALLS] += 1
+    need = prim_scratch_bytes(E[E_STACK], E[E_NCAND], cap)
+    if not stack_room(E, d, need):
+        count[C_NOSTACK] += 1
+        return 0
+    abi.call_with_data(E[E_MARK], d)
+    raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
+    n = _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, raw)
+    abi.call_with_data(E[E_FREE], d)
+    return n
+
+
+@njit(cache=True)
+def collide(slot, m, d, con, g1, g2, margin):
+    """The body of every slot's cfunc (``slot`` picks the original function to fall back on)."""
+    e = model_entry(m)
+    root_addr = abi.registry_root()
+    if e != 0:
+        E = carray(abi.i64_ptr(e), E_WORDS)
+        ngeom = E[E_NGEOM]
+        if 0 <= g1 < ngeom and 0 <= g2 < ngeom:
+            gslot = carray(abi.i64_ptr(E[E_GSLOT]), ngeom)
+            ka = gslot[g1]
+            kb = gslot[g2]
+            if ka >= 0 and kb >= 0:
+                nman = E[E_NMAN]
+                p = ka * nman + kb
+                cap = carray(abi.i64_ptr(E[E_CAP]), nman * nman)[p]
+                if cap < 0:
+                    return 0  # a penalty pair: forces.py applies its forces, no MuJoCo contact
+                if cap > 0:
+                    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+                    count[C_CALLS] += 1
+                    need = pair_scratch_bytes(E[E_STACK], E[E_NCAND], cap)
+                    if not stack_room(E, d, need):
+                        count[C_NOSTACK] += 1
+                        return 0
+                    abi.call_with_data(E[E_MARK], d)
+                    raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
+                    k = pair_contacts(E, m, d, con, g1, g2, margin, p, cap, raw)
+                    abi.call_with_data(E[E_FREE], d)
+                    return k
+            elif E[E_NPRIM] > 0:
+                k = _collide_prim(E, d, con, g1, g2, ka, kb, margin)
+                if k >= 0:
+                    return k
+    root = carray(abi.i64_ptr(root_addr), ROOT_WORDS)
+    return abi.call_collision(root[ROOT_ORIG + slot], m, d, con, g1, g2, margin)
+
+
+_SIG = types.int32(types.int64, types.int64, types.int64, types.int32, types.int32, types.float64)
+
+
+@cfunc(_SIG, cache=True)
+def collide_mesh_mesh(m, d, con, g1, g2, margin):
+    return collide(0, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_mesh_sdf(m, d, con, g1, g2, margin):
+    return collide(1, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_sdf_sdf(m, d, con, g1, g2, margin):
+    return collide(2, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_sphere_mesh(m, d, con, g1, g2, margin):
+    return collide(3, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_capsule_mesh(m, d, con, g1, g2, margin):
+    return collide(4, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_cylinder_mesh(m, d, con, g1, g2, margin):
+    return collide(5, m, d, con, g1, g2, margin)
+
+
+@cfunc(_SIG, cache=True)
+def collide_box_mesh(m, d, con, g1, g2, margin):
+    return collide(6, m, d, con, g1, g2, margin)
+
+
+CFUNCS = (collide_mesh_mesh, collide_mesh_sdf, collide_sdf_sdf,
+          collide_sphere_mesh, collide_capsule_mesh, collide_cylinder_mesh, collide_box_mesh)

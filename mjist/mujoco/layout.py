@@ -1,0 +1,191 @@
+"""The binary layout shared by the Python side and the cfuncs, declared once.
+
+The cfuncs (``hook``, ``forces``) read everything through int64 words: a registry root, one
+entry per attached model, per (MjData, pair) state slots, output rows and scratch carved from
+MuJoCo's per-``mjData`` stack. ``attach`` and ``registry`` write the same words. Every offset
+here is computed from the list of fields it follows, so adding a field moves the ones after
+it everywhere at once; numba reads these module globals as compile-time constants.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..query import primitive as cp
+from ..query import traverse as tv
+from . import abi
+
+
+def _offsets(*sizes: int) -> tuple[int, ...]:
+    """Start of each field laid out one after another, then the total size."""
+    out, o = [], 0
+    for s in sizes:
+        out.append(o)
+        o += s
+    return (*out, o)
+
+
+# ---- registry root ----------------------------------------------------------------------
+MAX_MODELS = 64
+SLOTS = (  # collision-table slots the hook can take over, in the order of hook.CFUNCS
+    (abi.GEOM_MESH, abi.GEOM_MESH),
+    (abi.GEOM_MESH, abi.GEOM_SDF),
+    (abi.GEOM_SDF, abi.GEOM_SDF),
+    (cp.SPHERE, abi.GEOM_MESH),
+    (cp.CAPSULE, abi.GEOM_MESH),
+    (cp.CYLINDER, abi.GEOM_MESH),
+    (cp.BOX, abi.GEOM_MESH),
+)
+# number of models; each slot's original function; the mjcb_passive found before ours;
+# then (model address, entry address) per model
+ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS), 1, 2 * MAX_MODELS)
+
+# ---- model entry (int64 words; addresses are of numpy arrays the entry keeps alive) -------
+(
+    E_NGEOM,  # model.ngeom
+    E_GSLOT,  # per geom: its IST index k (-1: not managed)
+    E_NMAN,  # managed geoms (nman)
+    E_CAP,  # per pair p = ka * nman + kb: contacts written at most (0: not managed, -1: penalty)
+    E_TREES,  # per k: (packed tree address, node count, -)
+    E_OFFSET,  # per pair: subtracted from the IST distance (metres)
+    E_XPOS, E_XMAT,  # offsets in mjData of geom_xpos, geom_xmat
+    E_ALLOC, E_MARK, E_FREE,  # mj_stackAllocByte, mj_markStack, mj_freeStack
+    E_KEYS, E_NSLOT, E_ISTATE, E_FSTATE,  # the (MjData, pair) state slots: keys, count, int and float state
+    E_STACK, E_NCAND,  # traversal stack capacity, candidate capacity
+    E_SPLIT, E_SKIP,  # contact-group depth, motion-bound skipping on/off
+    E_COUNT,  # counters (C_*)
+    E_NARENA, E_PSTACK, E_PARENA, E_POOL,  # offsets in mjData of the arena bookkeeping and thread pool
+    E_TIME,  # offset in mjData of time
+    E_EPS,  # per pair: ε1 + ε2
+    E_GPRIM, E_NPRIM, E_PRIM,  # primitives: per-geom index, count, (nprim, 4) table [type, size0..2]
+    E_PCAP, E_POFF,  # per (primitive, tree): cap and offset
+    E_NUP,  # levels contact normals climb at least (penalty mode: smooth force directions)
+    E_NPEN, E_PEN, E_NCPL, E_CPL, E_POUT,  # forces: penalty rows, coupling rows, output rows
+    E_APPLYFT, E_OBJVEL,  # mj_applyFT, mj_objectVelocity
+    E_QFRCP, E_BXPOS, E_BXQUAT, E_BXIPOS, E_MOCPOS, E_MOCQUAT,  # offsets in mjData
+    E_NBODY, E_NMOCAP,
+    E_DT_NS,  # the model's timestep in nanoseconds
+    E_WORDS,
+) = range(49)
+
+# ---- counters (racy increments from several threads: statistics only) ----------------------
+(C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT,
+ C_REFRESH, C_VISITS, C_GROUPS, C_PRIM_CALLS, C_PRIM_CONTACTS,
+ C_STIFF,  # penalty steps whose summed contact stiffness exceeded the explicit stability bound
+ N_COUNT) = range(16)
+COUNTER_NAMES = ("calls", "contact_calls", "contacts", "skipped", "stateless", "no_stack", "bad_pose", "failed",
+                 "front_calls", "front_refreshes", "visits", "front_groups", "primitive_calls", "primitive_contacts",
+                 "over_stiffness_budget")
+
+# ---- state slot of one (MjData, pair) ----------------------------------------------------
+KP = 16  # contact groups remembered for next frame
+NG = 256  # groups of the motion-bounded front
+# int64 words: closest leaf pair, remembered groups' count, front's count, the groups, the front
+I_PAIR, I_NPREV, I_NFRONT, I_PREV, I_FRONT, IW = _offsets(2, 1, 1, 4 * KP, 4 * NG)
+# float64 words: distance-skip reference (pose, distance, valid), slot time, front reference
+# (valid, pose, threshold reached, contact threshold), last pose (+ valid), the margin it serves
+F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, FW = _offsets(
+    12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1)
+
+# ---- slot keys: an MjData address and a pair index in one int64 ---------------------------
+KEY_SHIFT = 48  # user-space addresses fit in 48 bits (x86-64, AArch64)
+KEY_DATA_MASK = (1 << KEY_SHIFT) - 1
+KEY_OTHER = np.int64(-(1 << 63))  # a pair's second slot: calls with another margin than the steps'
+# pair indices below 2**15 (bit 63 is KEY_OTHER): nman² pairs and one coupling key after them
+MAX_GEOMS = math.isqrt((1 << (63 - KEY_SHIFT)) - 2)
+
+
+@njit(cache=True, inline="always")
+def slot_key(d, p, other):
+    """Key of the state slot of MjData ``d`` and pair (or coupling) ``p``."""
+    key = d | (p << KEY_SHIFT)
+    if other:
+        key |= KEY_OTHER
+    return key
+
+
+def slot_key_py(data_address: int, p: int) -> int:
+    """``slot_key`` from Python (a numpy int64 comparable key)."""
+    return int(data_address) | (int(p) << KEY_SHIFT)
+
+
+# ---- forces: rows of penalty pairs and couplings, output rows -------------------------------
+# penalty pair: pair index, geoms, bodies (body 1: -1 when static), law, stiffness k, damping c,
+# the explicit stability bound K_max, contact groups summed
+PEN_PAIR, PEN_G1, PEN_G2, PEN_B1, PEN_B2, PEN_LAW, PEN_K, PEN_C, PEN_KMAX, PEN_GROUPS, PEN_W = range(11)
+# coupling: mocap id, body, gains k_t c_t k_r c_r, the body's centre of mass in its frame (3)
+CPL_MOCAP, CPL_BODY, CPL_KT, CPL_CT, CPL_KR, CPL_CR, CPL_COM, CPL_W = _offsets(1, 1, 1, 1, 1, 1, 3)
+# output row per (MjData, pair | coupling) slot: force, torque, contacts, depth, volume, time;
+# the coupling's handle velocity, angular velocity, last position, last quaternion (+ valid)
+O_F, O_T, O_N, O_DEPTH, O_VOL, O_TIME, O_VH, O_WH, O_PH, O_QH, O_HOK, PO = _offsets(3, 3, 1, 1, 1, 1, 3, 3, 3, 4, 1)
+
+# ---- scratch on MuJoCo's stack ------------------------------------------------------------
+# Bytes of MuJoCo's arena left free beyond a call's scratch: MuJoCo allocates after the
+# collision phase in the same step, and running it out aborts the step with an error.
+STACK_RESERVE = 65536
+POSE_W = 44  # two 4x4 poses and the 3x4 relative transform
+PAIR_GEOM_W = 12  # per candidate: normal, the two ball points, contact point (tv.leaf_geometry)
+PRIM_F = 50  # the primitive path: two poses, transform, the primitive's query point (6)
+PEN_CAP = 64  # contact groups a penalty pair sums at most (the deepest and most spread when more)
+SMALL = 64  # float64 words of the forces' per-call temporaries
+
+
+@njit(cache=True, inline="always")
+def pair_floats(ns, nc):
+    """float64 words of a pair call: poses, stack values, candidate values, dmin, geometry rows,
+    the stateless slot, the blend accumulator."""
+    return POSE_W + ns + nc * (2 + PAIR_GEOM_W) + FW + tv.BLEND_W
+
+
+@njit(cache=True, inline="always")
+def pair_ints(ns, nc, cap):
+    """int64 words of a pair call: stack pairs, candidates, chosen, closest pair, stateless slot."""
+    return 2 * ns + 4 * nc + cap + 2 + IW
+
+
+@njit(cache=True, inline="always")
+def pair_scratch_bytes(ns, nc, cap):
+    return 8 * pair_floats(ns, nc) + 8 * pair_ints(ns, nc, cap) + 64
+
+
+@njit(cache=True, inline="always")
+def prim_floats(nc):
+    """float64 words of a tree–primitive call: PRIM_F, values, dmin, geometry rows."""
+    return PRIM_F + nc * (cp.GEOM_W + 2)
+
+
+@njit(cache=True, inline="always")
+def prim_ints(ns, nc, cap):
+    """int64 words of a tree–primitive call: stack, candidates (group, leaf), chosen."""
+    return ns + 2 * nc + cap
+
+
+@njit(cache=True, inline="always")
+def prim_scratch_bytes(ns, nc, cap):
+    return 8 * prim_floats(nc) + 8 * prim_ints(ns, nc, cap) + 64
+
+
+@njit(cache=True, inline="always")
+def forces_small_floats():
+    """float64 words of the forces' fixed part: a contact buffer, temporaries, a spare output row."""
+    return PEN_CAP * abi.PRECONTACT_DOUBLES + SMALL + PO
+
+
+@njit(cache=True, inline="always")
+def forces_big_bytes(ns, nc):
+    """The forces' traversal scratch: a pair call's, or the penetration volume's (poses, stack)."""
+    own = 8 * (POSE_W + ns) + 8 * (2 * ns + 2) + 64
+    return max(pair_scratch_bytes(ns, nc, PEN_CAP), own)
+
+
+@njit(cache=True, inline="always")
+def forces_scratch_bytes(ns, nc):
+    return 8 * forces_small_floats() + forces_big_bytes(ns, nc) + 128
+
+
+def scratch_bytes(ns: int, nc: int, cap: int) -> int:
+    """The most any cfunc call of a model takes from MuJoCo's stack, reserve included."""
+    return int(max(pair_scratch_bytes(ns, nc, cap), prim_scratch_bytes(ns, nc, cap),
+                   forces_scratch_bytes(ns, nc))) + STACK_RESERVE
