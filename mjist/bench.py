@@ -11,7 +11,8 @@ exact command, machine, versions, wall time per stage and every stage's table) a
 ``pareto.png``: run time against error for the IST at each ε against coal's exact distance
 (queries) and for each MuJoCo contact mode against the ground-truth occlusion (jaw closure).
 ``--quick`` (small sizes, under 5 minutes) is what CI-sized machines can afford; the full
-run states its time.
+run states its time. The repository's BENCHMARKS.md is a full run's report (with
+``pareto.png`` as ``docs/pareto.png``): see docs/architecture.md.
 """
 from __future__ import annotations
 
@@ -35,6 +36,31 @@ STAGES = {
     "mujoco": ("bench_mujoco.py", ["--quick", "--pairs", "bundled"], [], "prefix"),
     "haptic": ("bench_haptic.py", ["--quick"], [], "prefix"),
     "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),
+}
+
+
+# stage -> (section title, what it measures: a paragraph above the stage's table)
+NOTES = {
+    "build": ("Tree builds", "Each build in its own process (peak memory its own): leaves, certified ε and the "
+              "lower bound found on the surface, coverage of the volume, the pipeline's stage times. Reference: "
+              "coal's OBBRSS BVH build of the same mesh in the same run (a preprocessing reference, not the same "
+              "product: coal's BVH certifies nothing)."),
+    "query": ("Distance, contact and volume queries", "One chewing motion of the mandible replayed against the "
+              "maxilla, every traversal timed per frame (Python call included; kernel-only in its column). "
+              "References on the same frames: coal's exact distance, MuJoCo's convex hull and mesh-SDF through "
+              "mj_geomDistance; the IST's answers checked against coal's interval on every frame."),
+    "paper": ("The seed paper's figures", "Speed against the number of leaves and the tree depth, error against "
+              "leaves, and the speed-ups of backtracking and multipoint in and out of contact (Figs. 6–9)."),
+    "scaling": ("Scaling with mesh size", "The same motion on remeshed jaws of 10 k to 200 k vertices: IST "
+                "queries against coal."),
+    "mujoco": ("MuJoCo: jaw closure", "The jaw-closure scene with each contact mode: IST (mesh and sdf geoms), "
+               "MuJoCo's convex hull, mesh-SDF and CoACD pieces; step time, where the jaw comes to rest against "
+               "the designed occlusion, and the IST's distances checked against coal's (bound violations)."),
+    "haptic": ("Haptic loop", "Every scripted device path with both penalty laws: loop time (mocap update → "
+               "mj_step → force readout), forces, the largest force change per step, and the IST's depth "
+               "against coal's deepest triangle-pair penetration."),
+    "occlusion": ("Occlusion search", "Starts closed in mujoco.rollout threads, the whole search's time, and "
+                  "the best candidate's distance from the designed occlusion."),
 }
 
 
@@ -161,20 +187,28 @@ def run(quick: bool = False, out="out/bench", only: list[str] | None = None, ech
     total = time.perf_counter() - t_all
     mach = machine()
     lines = [
-        "# mjist benchmarks (generated)", "",
-        f"Command: `{command}` (from the project root). Generated {time.strftime('%Y-%m-%d %H:%M')}, "
-        f"total {total / 60:.1f} min.", "",
+        "# Benchmarks", "",
+        f"Today's figures, written by `{command}` (from the project root; {time.strftime('%Y-%m-%d')}, "
+        f"{total / 60:.1f} min). Each stage runs its script in its own process; its command is given "
+        "with its table, and every reference (coal, MuJoCo's own contacts) is measured in the same run. "
+        "This machine is shared and noisy: compare medians and ratios, not single figures.", "",
         "Machine: " + ", ".join(f"{k} {v}" for k, v in mach.items()), "",
         "| stage | script | seconds | status |", "|---|---|---|---|",
     ]
     for st, r in done.items():
         lines.append(f"| {st} | scripts/{STAGES[st][0]} | {r['seconds']:.0f} | {'ok' if r['returncode'] == 0 else 'failed'} |")
     for st, r in done.items():
-        lines += ["", f"## {st}", ""]
+        script, qargs, fargs = STAGES[st][:3]
+        title, note = NOTES.get(st, (st, ""))
+        cmd = " ".join(["python", f"scripts/{script}", *(qargs if quick else fargs)])
+        lines += ["", f"## {title}", "", f"`{cmd}`", ""]
+        if note:
+            lines += [note, ""]
         lines.append(r["table"].strip() if r.get("table") else "(no table: see the stage's output)")
     pic = pareto(out)
     if pic:
         lines += ["", "## Run time against error", "", "![pareto](pareto.png)"]
+    lines += ["", "Ideas measured and not kept: [docs/tried.md](docs/tried.md)."]
     (out / "BENCHMARKS.generated.md").write_text("\n".join(lines) + "\n")
     summary = {"command": command, "total_s": total, "machine": mach,
                "stages": {k: {kk: vv for kk, vv in v.items() if kk != "table"} for k, v in done.items()}}

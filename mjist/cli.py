@@ -155,7 +155,7 @@ def _cmd_occlusion(args) -> int:
     from .jaw import occlusion
 
     return _user_errors("occlusion", lambda: occlusion.main(
-        scene=args.scene, data=args.data, starts=args.starts, translation_mm=args.translation, rotation_deg=args.rotation,
+        scene=args.scene, data=args.data, starts=args.starts, translation=args.translation, rotation_deg=args.rotation,
         threads=args.threads, seed=args.seed, top=args.top, out=args.out_dir, progress=not args.quiet))
 
 
@@ -248,7 +248,7 @@ def _add_occlusion(sub) -> None:
     oc.add_argument("scene", nargs="?", default=None, help="occlusion-search scene (default: models/occlusion_search.xml)")
     oc.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
     oc.add_argument("--starts", type=int, default=64, help="starting poses (default 64)")
-    oc.add_argument("--translation", type=float, default=2.0, help="start shifts up to this many mm (default 2)")
+    oc.add_argument("--translation", type=float, default=2e-3, help="start shifts up to this far, metres (default 0.002)")
     oc.add_argument("--rotation", type=float, default=3.0, help="start turns up to this many degrees (default 3)")
     oc.add_argument("--threads", type=int, default=None, help="rollout threads (default: CPU count)")
     oc.add_argument("--seed", type=int, default=0)
@@ -267,7 +267,12 @@ def _add_bench(sub) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo")
+    from . import __version__
+
+    p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo. "
+                                "Lengths given on the command line are in metres (MuJoCo's unit), except "
+                                "`mjist build`'s, which are in the mesh's own units; angles in degrees.")
+    p.add_argument("--version", action="version", version=f"mjist {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True)
     for add in (_add_build, _add_info, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_bench):
         add(sub)

@@ -4,7 +4,7 @@
     python scripts/bench_haptic.py --quick
 
 For each jaw pair, penalty law (``contacts``, ``volume``) and tree resolution (``--max-errors``),
-every scripted trajectory is run through ``mjist.haptic.run`` (mocap update → ``mj_step`` →
+every scripted trajectory is run through ``mjist.jaw.haptic.run`` (mocap update → ``mj_step`` →
 force readout, timed per step). Every ``--every`` steps in contact, coal's exact collision
 with contacts gives the deepest triangle-pair penetration δ_coal at that pose; the reference
 force is the contacts law applied to it, ``k·δ_coal``, against the IST's ``k·δ_IST`` of its

@@ -157,9 +157,8 @@ def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
             cons = [c.dist for c in d.contact[:d.ncon] if {m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]} == jaws]
             if h is not None:
                 # the IST distance on a probe MjData at the stepped one's new qpos (the hook keeps
-                # a query's coherence state apart from the steps' since session 20; before, a query
-                # on the stepped MjData reshaped the next steps' work), so the timed steps run
-                # with nothing between them but this Python
+                # a query's coherence state apart from the steps', and the probe keeps the timed
+                # steps free of anything but this Python)
                 probe.qpos[:] = d.qpos
                 mujoco.mj_forward(m, probe)
                 at = probe

@@ -13,6 +13,20 @@ def cache(tmp_path_factory):
     return str(tmp_path_factory.mktemp("treecache"))
 
 
+def load_script(*parts):
+    """A file of the repository (``scripts/``, ``examples/``) imported as a module and registered in
+    ``sys.modules``: numba's on-disk cache finds a kernel's module again by its name."""
+    import importlib.util
+    import sys
+
+    path = ROOT.joinpath(*parts)
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[path.stem] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def shared_path(*parts) -> Path:
     """A file of ../shared/data, or skip the test when the folder is absent (fresh clones)."""
     p = SHARED.joinpath(*parts)

@@ -373,7 +373,7 @@ def generate(spacing: float = DEFAULT_SPACING):
     -------
     maxilla, mandible : trimesh.Trimesh
     meta : dict
-        ``hinge`` (condyle centre, m), ``contacts`` (designed contact points, m), crown data.
+        ``metadata(spacing)``: ``hinge`` (condyle centre, m), designed contact points (m), ...
     """
     D = design()
     c = D["condyle"]
@@ -384,13 +384,20 @@ def generate(spacing: float = DEFAULT_SPACING):
     maxi = _polygonise(1, D, *_grid([-xmax, -5.0, zlo], [xmax, 43.0, zhi], spacing), spacing)
     for m in (mand, maxi):
         _clean_metres(m)
-    # designed contacts in xyz (both sides), on the interface
+    return maxi, mand, metadata(spacing, D)
+
+
+def metadata(spacing: float = DEFAULT_SPACING, D: dict | None = None) -> dict:
+    """What the design says about the jaws without polygonising them: units, frame, hinge,
+    condyles and the designed contact points (both sides, on the occlusal interface)."""
+    D = design() if D is None else D
+    c = D["condyle"]
     pts = []
     for s, v in D["CT"]:
         f, _ = interface(s, v, D["LC"], D["UC"], D["CT"])
         x, z = arch_point(s, v)
         pts += [[x, f, z], [-x, f, z]]
-    meta = {
+    return {
         "units": "m",
         "frame": "+y up (superior), +z anterior, x left-right; maxilla fixed",
         "hinge": (np.array([0.0, c[1], c[2]]) * 1e-3).tolist(),
@@ -399,4 +406,3 @@ def generate(spacing: float = DEFAULT_SPACING):
         "spacing_mm": spacing,
         "teeth_per_jaw": 2 * len(KINDS),
     }
-    return maxi, mand, meta

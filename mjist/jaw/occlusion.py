@@ -444,9 +444,9 @@ def write_outputs(res: dict, out_dir, picture: bool = True) -> list[str]:
     return written
 
 
-def main(scene=None, data=None, starts=64, translation_mm=2.0, rotation_deg=3.0, threads=None, seed=0, top=5,
+def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, threads=None, seed=0, top=5,
          out="out/occlusion", progress=True) -> int:
-    res = search(scene, data=data, starts=starts, translation=translation_mm * 1e-3, rotation_deg=rotation_deg,
+    res = search(scene, data=data, starts=starts, translation=translation, rotation_deg=rotation_deg,
                  threads=threads, seed=seed, top=top, progress=progress, out_dir=out)
     try:
         print(f"{res['starts']} starts closed in {res['simulate_s']:.1f} s on {res['threads']} thread(s) "

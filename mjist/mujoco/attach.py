@@ -296,7 +296,7 @@ def _effective_mass(model, body: int, geom: int) -> float:
 
 
 def _force_tables(model, cfg: Config, handle: Handle, slot_of: dict, nman: int):
-    """Rows of ``mjist.forces``: penalty pairs and the virtual coupling (validated)."""
+    """Rows of ``mjist.mujoco.forces``: penalty pairs and the virtual coupling (validated)."""
     from . import forces
 
     dt = float(model.opt.timestep)
@@ -354,7 +354,8 @@ def load_model(path, *, sdf_octree_depth: int | None = SDF_OCTREE_DEPTH, **kwarg
     """Compile an MJCF file and attach the IST: ``(model, handle)``.
 
     Mesh-backed ``sdf`` geoms get a minimal native octree (``sdf_octree_depth``) because the
-    IST answers their pairs; pairs it does not manage would use that coarse octree.
+    IST answers their pairs; pairs it does not manage would use that coarse octree. SDF plugin
+    geoms keep theirs (and MuJoCo's collision, unless ``mjist_geoms`` names them).
     Keyword arguments go to ``attach``.
     """
     import os
@@ -364,7 +365,8 @@ def load_model(path, *, sdf_octree_depth: int | None = SDF_OCTREE_DEPTH, **kwarg
         raise FileNotFoundError(f"MJCF file {path!r} does not exist")
     spec = mujoco.MjSpec.from_file(path)
     if sdf_octree_depth is not None:
-        sdf_meshes = {g.meshname for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_SDF and g.meshname}
+        sdf_meshes = {g.meshname for g in spec.geoms
+                      if g.type == mujoco.mjtGeom.mjGEOM_SDF and g.meshname and not g.plugin.active}
         for mesh in spec.meshes:
             if mesh.name in sdf_meshes and hasattr(mesh, "octree_maxdepth"):
                 mesh.octree_maxdepth = int(sdf_octree_depth)

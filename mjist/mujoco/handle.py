@@ -20,7 +20,7 @@ class PairInfo:
     cap: int  # contacts written at most (≤ mj_maxContact)
     offset: float  # subtracted from the IST distance (metres)
     error_bound: float  # ε_1 + ε_2
-    mode: str = "constraint"  # or "penalty": forces from mjist.forces, no MuJoCo contact
+    mode: str = "constraint"  # or "penalty": forces from mjist.mujoco.forces, no MuJoCo contact
 
     def as_dict(self) -> dict:
         return asdict(self)

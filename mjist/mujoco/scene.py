@@ -13,8 +13,14 @@ from .config import Config
 
 
 def _is_ist_geom(model, g: int) -> bool:
+    """A geom the IST can stand in for: a mesh, or an sdf geom with a mesh (a plugin's too)."""
     t = model.geom_type[g]
     return t == abi.GEOM_MESH or (t == abi.GEOM_SDF and model.geom_dataid[g] >= 0)
+
+
+def _is_plugin_sdf(model, g: int) -> bool:
+    """An sdf geom whose distance a plugin computes (e.g. ``mujoco.sdf.torus``): exact already."""
+    return model.geom_type[g] == abi.GEOM_SDF and model.geom_plugin[g] >= 0
 
 
 def geom_name(model, g: int) -> str:
@@ -22,9 +28,14 @@ def geom_name(model, g: int) -> str:
 
 
 def managed_geoms(model, cfg: Config) -> list[int]:
-    """Geom ids the configuration asks for (validated)."""
+    """Geom ids the configuration asks for (validated).
+
+    ``"all"`` is every mesh geom and every mesh-backed sdf geom except those of an SDF plugin:
+    a plugin's signed distance is exact, and its mesh is only what the viewer draws, so those
+    keep MuJoCo's own collision unless ``mjist_geoms`` names them.
+    """
     if cfg.geoms == "all":
-        return [g for g in range(model.ngeom) if _is_ist_geom(model, g)]
+        return [g for g in range(model.ngeom) if _is_ist_geom(model, g) and not _is_plugin_sdf(model, g)]
     out = []
     for name in cfg.geoms:
         g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name)

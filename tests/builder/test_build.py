@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from conftest import ROOT, gaps_to_union, shared_path, winding_numbers
+from conftest import gaps_to_union, load_script, shared_path, winding_numbers
 from scipy.spatial import cKDTree
 
 import mjist
@@ -689,11 +689,8 @@ def test_two_ball_nodes_are_minimal():
 
 def test_profile_build_script_reports_every_levels_stages(tmp_path):
     """``scripts/profile_build.py``: the pipeline's own per-level stage times of a real build."""
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("profile_build", ROOT / "scripts" / "profile_build.py")
-    pb = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(pb)
+    pb = load_script("scripts", "profile_build.py")
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     out = tmp_path / "p.json"
     mesh.export(tmp_path / "s.stl")
@@ -769,11 +766,8 @@ def test_band_free_distance_is_the_brute_force_one():
 def test_coverage_depth_script_samples_the_trees_coverage():
     """``scripts/coverage_depth.py``: its Monte Carlo coverage matches the tree's (leaf volume over
     mesh volume) within sampling error, and its depth bands partition the solid and the gap."""
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("coverage_depth", ROOT / "scripts" / "coverage_depth.py")
-    cd = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cd)
+    cd = load_script("scripts", "coverage_depth.py")
     mesh, tree = built("torus")
     r = cd.coverage_by_depth(mesh, tree.leaf_centers, tree.leaf_radii, samples=400_000, edges=[0, 0.02, 0.05, 0.1, np.inf])
     n = r["inside_samples"]

@@ -1,4 +1,4 @@
-"""Stage 1: every bad input raises MeshError naming the defect and the fix."""
+"""Every bad input raises MeshError naming the defect and the fix."""
 import numpy as np
 import pytest
 import trimesh

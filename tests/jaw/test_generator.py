@@ -16,12 +16,27 @@ MODELS = ROOT / "models"
 
 @pytest.fixture(scope="module")
 def generated():
+    """The committed jaws (the slow test proves a regeneration gives them) and the design's data."""
+    maxilla = trimesh.load(MODELS / "maxilla.obj", force="mesh")
+    mandible = trimesh.load(MODELS / "mandible.obj", force="mesh")
+    return maxilla, mandible, jawmodel.metadata()
+
+
+def test_coarse_regeneration_is_closed_with_the_designed_shells():
+    """The generator end to end at a coarse lattice (the full one is the slow test below)."""
+    maxilla, mandible, meta = jawmodel.generate(spacing=1.5)
+    for m, shells in ((maxilla, 3), (mandible, 1)):
+        mesh = mjist.load_mesh((m.vertices, m.faces))  # raises unless closed, wound, non-degenerate
+        assert mesh.shells == shells
+        assert 5_000 <= len(mesh.vertices) <= 30_000
+    stored = json.loads((MODELS / "occlusion.json").read_text())
+    assert stored["hinge"] == pytest.approx(meta["hinge"])
+    assert meta == jawmodel.metadata(1.5)
+
+
+@pytest.mark.slow
+def test_regenerated_models_are_closed_and_match_the_committed_files():
     maxilla, mandible, meta = jawmodel.generate()
-    return maxilla, mandible, meta
-
-
-def test_regenerated_models_are_closed_and_match_the_committed_files(generated):
-    maxilla, mandible, meta = generated
     for name, m, shells in (("maxilla", maxilla, 3), ("mandible", mandible, 1)):
         mesh = mjist.load_mesh((m.vertices, m.faces))  # raises unless closed, wound, non-degenerate
         assert mesh.shells == shells  # maxilla: arch + two glenoid fossae
