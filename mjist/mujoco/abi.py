@@ -50,7 +50,7 @@ def check_version():
     if not any(ver == v or ver.startswith(v + ".") for v in VERIFIED_VERSIONS):
         raise MuJoCoABIError(
             f"mjist's collision hook was verified on MuJoCo {', '.join(VERIFIED_VERSIONS)}.x, this is {ver}: "
-            "install mujoco>=4.0,<4.1 (pip install 'mujoco~=4.0.0') or re-verify mjist/mjabi.py for this version"
+            "install mujoco>=4.0,<4.1 (pip install 'mujoco~=4.0.0') or re-verify mjist/mujoco/abi.py for this version"
         )
 
 
