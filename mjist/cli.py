@@ -95,13 +95,29 @@ def _user_errors(name: str, run, extra: tuple = ()) -> int:
         return 1
 
 
+def _pair_options(args) -> dict:
+    """The jaw-pair options of ``--data`` and ``mjist scene`` (``jaw.scenes.pair_scene``)."""
+    hinge = None
+    if args.hinge:
+        try:
+            hinge = [float(a) for a in args.hinge.split(",")]
+        except ValueError:
+            hinge = []
+        if len(hinge) != 3:
+            raise ValueError(f"--hinge {args.hinge!r}: give x,y,z in the maxilla file's coordinates and units")
+    opts = {"units": args.units, "up": args.up, "hinge": hinge, "repair": args.repair}
+    if getattr(args, "tmj", None) is not None:
+        opts["tmj"] = args.tmj == "on"
+    return opts
+
+
 def _cmd_demo(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from .jaw import demo
 
     return _user_errors("demo", lambda: demo.main(
         scene=args.scene, data=args.data, native=args.native, seconds=args.seconds, out=args.out_dir,
-        picture=not args.no_picture, max_error=args.max_error, progress=not args.quiet))
+        picture=not args.no_picture, max_error=args.max_error, progress=not args.quiet, pair=_pair_options(args)))
 
 
 def _cmd_render(args) -> int:
@@ -147,7 +163,7 @@ def _cmd_haptic(args) -> int:
 
     return _user_errors("haptic", lambda: haptic.main(
         scene=args.scene, trajectory=args.trajectory, law=args.law, seconds=args.seconds, out=args.out_dir,
-        progress=not args.quiet, data=args.data), extra=(RuntimeError,))
+        progress=not args.quiet, data=args.data, pair=_pair_options(args)), extra=(RuntimeError,))
 
 
 def _cmd_occlusion(args) -> int:
@@ -156,7 +172,23 @@ def _cmd_occlusion(args) -> int:
 
     return _user_errors("occlusion", lambda: occlusion.main(
         scene=args.scene, data=args.data, starts=args.starts, translation=args.translation, rotation_deg=args.rotation,
-        threads=args.threads, seed=args.seed, top=args.top, out=args.out_dir, progress=not args.quiet))
+        threads=args.threads, seed=args.seed, top=args.top, out=args.out_dir, progress=not args.quiet,
+        pair=_pair_options(args), contact_map=not args.no_contact_map))
+
+
+def _cmd_scene(args) -> int:
+    from .jaw.scenes import pair_scene
+
+    def run():
+        opts = _pair_options(args)
+        if args.max_error is not None:
+            opts["max_error"] = args.max_error
+        path = pair_scene(None, None, args.kind, maxilla=args.maxilla, mandible=args.mandible, output=args.output,
+                          progress=not args.quiet, **opts)
+        print(f"written       {path} (and {path.parent / 'pair.json'}: what was detected)")
+        return 0
+
+    return _user_errors("scene", run)
 
 
 def _cmd_bench(args) -> int:
@@ -205,6 +237,7 @@ def _add_demo(sub) -> None:
     dm.add_argument("--out-dir", default="out/demo", help="summary JSON and picture (default out/demo)")
     dm.add_argument("--no-picture", action="store_true", help="skip the rendering")
     dm.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _add_pair_options(dm)
     dm.set_defaults(func=_cmd_demo)
 
 
@@ -240,6 +273,7 @@ def _add_haptic(sub) -> None:
     hp.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
     hp.add_argument("--out-dir", default="out/haptic", help="log (.npz), summary (.json) and plot (.png)")
     hp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _add_pair_options(hp)
     hp.set_defaults(func=_cmd_haptic)
 
 
@@ -254,8 +288,38 @@ def _add_occlusion(sub) -> None:
     oc.add_argument("--seed", type=int, default=0)
     oc.add_argument("--top", type=int, default=5, help="candidates to report (default 5)")
     oc.add_argument("--out-dir", default="out/occlusion", help="occlusion.json, landscape.png, best.png")
+    oc.add_argument("--no-contact-map", action="store_true", help="skip the occlusal contact map of the best pose")
     oc.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _add_pair_options(oc, tmj=True)
     oc.set_defaults(func=_cmd_occlusion)
+
+
+def _add_pair_options(p, tmj: bool = False) -> None:
+    """Options for a user's jaw pair: units, up axis, hinge, repair (all detected by default)."""
+    g = p.add_argument_group("jaw pair (with --data or mjist scene)")
+    g.add_argument("--units", default="auto", help="auto (default), mm, m, or mm,m for a maxilla and mandible stored differently")
+    g.add_argument("--up", default="auto", choices=("auto", "+x", "-x", "+y", "-y", "+z", "-z"),
+                   help="file axis pointing superior (default: detected from how the jaws open)")
+    g.add_argument("--hinge", help="condylar axis centre x,y,z in the maxilla file's coordinates and units "
+                                   "(default: the condyles, or Bonwill's estimate for teeth-only scans)")
+    g.add_argument("--repair", default="auto", choices=("auto", "on", "off"),
+                   help="auto (default): close an open scan with MeshFix and warn; off: refuse it")
+    if tmj:
+        g.add_argument("--tmj", default="on", choices=("on", "off"),
+                       help="the occlusion search's soft TMJ joint at the hinge (default on; off: a free mandible)")
+
+
+def _add_scene(sub) -> None:
+    sc = sub.add_parser("scene", help="write a MuJoCo scene (MJCF) for your own maxilla + mandible meshes")
+    sc.add_argument("maxilla", help="maxilla (upper jaw) mesh: STL/OBJ/PLY")
+    sc.add_argument("mandible", help="mandible (lower jaw) mesh")
+    sc.add_argument("--kind", choices=("closure", "occlusion", "haptic"), default="closure",
+                    help="jaw closure by muscles, occlusion search, or haptic device (default closure)")
+    sc.add_argument("-o", "--output", default="out/scene/scene.xml", help="MJCF file to write (default out/scene/scene.xml)")
+    sc.add_argument("--max-error", type=float, default=None, help="mjist_max_error of the scene (metres, default 0.0003)")
+    sc.add_argument("-q", "--quiet", action="store_true", help="do not print what was detected")
+    _add_pair_options(sc, tmj=True)
+    sc.set_defaults(func=_cmd_scene)
 
 
 def _add_bench(sub) -> None:
@@ -274,7 +338,7 @@ def main(argv=None) -> int:
                                 "`mjist build`'s, which are in the mesh's own units; angles in degrees.")
     p.add_argument("--version", action="version", version=f"mjist {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True)
-    for add in (_add_build, _add_info, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_bench):
+    for add in (_add_build, _add_info, _add_scene, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_bench):
         add(sub)
     args = p.parse_args(argv)
     t = time.perf_counter()

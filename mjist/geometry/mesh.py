@@ -27,6 +27,7 @@ class Mesh:
     area: float
     shells: int
     repairs: list = field(default_factory=list)
+    closure: object = None  # geometry.repair.Closure when an open surface was closed
 
     @property
     def extents(self) -> np.ndarray:
@@ -130,30 +131,26 @@ def _edge_defects(tm) -> tuple[int, int]:
     return int((counts == 1).sum()), int((counts > 2).sum())
 
 
-def _check_closed(tm, repair: bool, repairs: list) -> None:
-    """Refuse an open or non-manifold surface; with ``repair`` fill simple holes first."""
+def _check_closed(tm, repair: bool, repairs: list):
+    """Refuse an open or non-manifold surface, or close it with MeshFix (``geometry.repair``)
+    when ``repair``. Returns the closed mesh and the closure report (``None`` when closed already)."""
     if tm.is_watertight:
-        return
-    boundary, nonmanifold = _edge_defects(tm)
-    if repair and nonmanifold == 0:
-        before = len(tm.faces)
-        trimesh.repair.fill_holes(tm)
-        if len(tm.faces) != before:
-            repairs.append(f"filled holes with {len(tm.faces) - before} faces")
-    if tm.is_watertight:
-        return
+        return tm, None
+    if repair:
+        from .repair import close_surface
+
+        tm, closure = close_surface(tm)
+        repairs.append(closure.describe())
+        return tm, closure
     boundary, nonmanifold = _edge_defects(tm)
     what = []
     if boundary:
         what.append(f"{boundary} open (boundary) edges")
     if nonmanifold:
         what.append(f"{nonmanifold} non-manifold edges shared by more than two faces")
-    fix = (
-        "close the holes (repair=True fills simple ones)"
-        if boundary and not nonmanifold
-        else "split or remesh the non-manifold parts (e.g. a manifold remesher), then retry"
-    )
-    raise MeshError(f"mesh is not closed: {', '.join(what)}. An inner sphere tree needs a watertight surface: {fix}")
+    raise MeshError(f"mesh is not closed: {', '.join(what)}. An inner sphere tree needs a watertight surface: "
+                    "pass repair=True (--repair) to close it with MeshFix (the added faces are reported), or close it "
+                    "in a mesh editor")
 
 
 def _check_winding(tm, repair: bool, repairs: list) -> None:
@@ -197,9 +194,9 @@ def load_mesh(mesh, *, repair: bool = False) -> Mesh:
         The surface. Files are read with trimesh (STL, OBJ, PLY, ...). Coincident vertices
         are merged (STL and OBJ files with normals store them split); nothing else changes.
     repair : bool
-        Try trimesh's repairs (drop degenerate faces, fix winding and inversion, fill
-        holes). What was changed is listed in ``Mesh.repairs``. A mesh still not closed
-        afterwards raises.
+        Drop degenerate faces, fix winding and inversion (trimesh), fill simple holes
+        (trimesh) and close any other open surface with MeshFix (``geometry.repair``). What
+        was changed is listed in ``Mesh.repairs`` (and ``Mesh.closure``: the area added).
 
     Raises
     ------
@@ -213,7 +210,7 @@ def load_mesh(mesh, *, repair: bool = False) -> Mesh:
     if scale == 0.0:
         raise MeshError("mesh is degenerate: all vertices coincide")
     _drop_degenerate(tm, scale, repair, repairs)
-    _check_closed(tm, repair, repairs)
+    tm, closure = _check_closed(tm, repair, repairs)
     _check_winding(tm, repair, repairs)
     volume = _outward_volume(tm, scale, repair, repairs)
     shells = len(trimesh.graph.connected_components(tm.face_adjacency, nodes=np.arange(len(tm.faces))))
@@ -224,4 +221,5 @@ def load_mesh(mesh, *, repair: bool = False) -> Mesh:
         area=float(tm.area),
         shells=shells,
         repairs=repairs,
+        closure=closure,
     )

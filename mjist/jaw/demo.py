@@ -134,10 +134,13 @@ def format_summary(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main(scene=None, data=None, native=False, seconds=0.6, out="out/demo", picture=True, max_error=None, progress=True) -> int:
+def main(scene=None, data=None, native=False, seconds=0.6, out="out/demo", picture=True, max_error=None, progress=True,
+         pair: dict | None = None) -> int:
+    """``mjist demo``: ``data`` is a jaw-pair folder read with ``pair`` options (units, up, hinge,
+    repair: ``scenes.pair_scene``)."""
     out = Path(out)
     if data is not None:
-        scene = pair_scene(data, out, "closure")
+        scene = pair_scene(data, out, "closure", progress=progress, **(pair or {}))
     scene = Path(scene or SCENE)
     t = time.perf_counter()
     if native:

@@ -290,9 +290,10 @@ def plot(log: dict, out, title: str = "") -> str:
 
 
 def main(scene=None, trajectory: str = "chewing", law: str | None = None, seconds: float | None = None,
-         out="out/haptic", progress: bool = True, data=None) -> int:
+         out="out/haptic", progress: bool = True, data=None, pair: dict | None = None) -> int:
+    """``mjist haptic``: ``data`` is a jaw-pair folder read with ``pair`` options (``scenes.pair_scene``)."""
     if data is not None:
-        scene = pair_scene(data, out, "haptic")
+        scene = pair_scene(data, out, "haptic", progress=progress, **(pair or {}))
     scene = Path(scene or SCENE)
     settings = {"penalty": law} if law else {}
     model, handle = load_model(scene, progress=progress, **settings)

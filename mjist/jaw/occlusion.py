@@ -7,8 +7,8 @@ translations and a small rotation about a random axis, all relative to the scene
 threads), and scores every settled pose:
 
 * **regions**: contact groups (IST multipoint, spheres closer than the contact offset) fall
-  into six regions, left/right × anterior/premolar/molar (the arch's front-to-back extent in
-  thirds); more regions touched is better;
+  into six regions, left/right × anterior/premolar/molar, in the maxillary arch's own frame
+  (its midline and front, ``mjist.jaw.arch``; not the world axes); more regions touched is better;
 * **balance**: 1 − |L − R| / (L + R) over the contacts' left/right counts;
 * **penetration**: the IST penetration volume (mm³), subtracted;
 * **stability**: residual speed of the mandible (mm/s), subtracted (capped at 1);
@@ -152,22 +152,16 @@ def _distance_field(Nmx, Pmx, Pmd, pts, st, g, out):
     return out[:len(P)]
 
 
-def _score_pose(model, q: Query, gmx, gmd, Pmx, pos, quat, vel, offset, z_cuts, field) -> dict:
+def _score_pose(model, q: Query, gmx, gmd, Pmx, pos, quat, vel, offset, frame, field) -> dict:
     Pmd = geom_pose_at(model, gmd, pos, quat)
     c = q.contacts(Pmx, Pmd, max_contacts=32, split_depth=4, margin=offset)
     vol = q.penetration_volume(Pmx, Pmd).volume
-    names = []
-    counts = {}
-    left = right = 0
-    for p in c.positions:
-        j = JAW_TO_WORLD.T @ p  # world -> jaw frame (x lateral, y up, z anterior)
-        side = "left" if j[0] > 0 else "right"
-        left += j[0] > 0
-        right += j[0] <= 0
-        part = "anterior" if j[2] > z_cuts[1] else "premolar" if j[2] > z_cuts[0] else "molar"
-        key = f"{side}-{part}"
+    counts: dict = {}
+    for key in frame.regions(c.positions) if c.count else []:
         counts[key] = counts.get(key, 0) + 1
     names = sorted(counts)
+    left = sum(v for k, v in counts.items() if k.startswith("left"))
+    right = sum(v for k, v in counts.items() if k.startswith("right"))
     balance = 1.0 - abs(left - right) / (left + right) if left + right else 0.0
     speed = float(np.linalg.norm(vel[:3]) * 1e3)  # mm/s
     dist, gap = field(Pmd)
@@ -176,6 +170,21 @@ def _score_pose(model, q: Query, gmx, gmd, Pmx, pos, quat, vel, offset, z_cuts, 
     return {"score": float(score), "contacts": int(c.count), "regions": names, "region_counts": counts,
             "balance": float(balance), "volume_mm3": float(vol * 1e9), "speed_mm_s": speed,
             "near_fraction": near, "median_distance_mm": float(np.median(dist) * 1e3) if dist.size else None}
+
+
+def arch_frames(model, gmx, gmd) -> dict:
+    """Both arches' frames (world coordinates) at the scene's reference occlusion (``arch.arch_frame``)."""
+    from .arch import arch_frame, occlusal_points
+
+    p0, q0, _ = _reference(model)
+    d = mujoco.MjData(model)
+    mujoco.mj_forward(model, d)
+    world = {}
+    for g, P in ((gmx, geom_pose(d, gmx)), (gmd, geom_pose_at(model, gmd, p0, q0))):
+        V, F = mesh_of(model, g)
+        world[g] = (V @ P[:3, :3].T + P[:3, 3], F)
+    (Vx, Fx), (Vd, Fd) = world[gmx], world[gmd]
+    return {"maxilla": arch_frame(occlusal_points(Vx, Vd, Fd), UP), "mandible": arch_frame(occlusal_points(Vd, Vx, Fx), UP)}
 
 
 def pose_error(model, gmd, pos, quat, ref_pos, ref_quat, sample: np.ndarray) -> dict:
@@ -239,14 +248,15 @@ def _polish(model, gmd, Pmx, bvh, pos, quat, hinge, reach_deg: float = 2.0):
 
 def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3, rotation_deg: float = 3.0,
            opening_deg: float = 2.0, seconds: float = 0.4, seed: int = 0, threads: int | None = None,
-           top: int = 5, polish: int = 3, progress: bool = True, cache_dir=None, out_dir=None) -> dict:
+           top: int = 5, polish: int = 3, progress: bool = True, cache_dir=None, out_dir=None, pair: dict | None = None) -> dict:
     """Sample, close and rank mandible poses; return ``{"candidates": [...], ...}`` (best first).
 
     Parameters
     ----------
     scene : path, optional
         An occlusion-search scene (default ``models/occlusion_search.xml``); or ``data``: a jaw
-        pair folder whose scene is generated into ``out_dir``.
+        pair folder whose scene is generated into ``out_dir``, read with ``pair`` options
+        (units, up, hinge, repair, tmj: ``scenes.pair_scene``).
     starts : int
         Starting poses, sampled with ``seed`` within ``translation`` (m), ``rotation_deg`` and
         ``opening_deg`` of the scene's ``occlusion`` keyframe.
@@ -258,7 +268,7 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         Candidates returned; how many of the best are polished with coal.
     """
     if data is not None:
-        scene = pair_scene(data, out_dir or "out/occlusion", "occlusion")
+        scene = pair_scene(data, out_dir or "out/occlusion", "occlusion", progress=progress, **(pair or {}))
     scene = Path(scene or SCENE)
     t0 = time.perf_counter()
     model, handle = load_model(scene, progress=progress, cache_dir=cache_dir)
@@ -271,9 +281,7 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         Pmx = geom_pose(d, gmx)
         ref_pos, ref_quat, hinge = _reference(model)
         V, _ = mesh_of(model, gmd)
-        P_ref = geom_pose_at(model, gmd, ref_pos, ref_quat)
-        zj = (JAW_TO_WORLD.T @ (P_ref[:3, :3] @ V.T + P_ref[:3, 3:4]))[2]
-        z_cuts = np.quantile(zj, [1 / 3, 2 / 3])
+        frames = arch_frames(model, gmx, gmd)
         sample = V[np.random.default_rng(0).choice(len(V), min(2000, len(V)), replace=False)]
         setup_s = time.perf_counter() - t0
 
@@ -286,7 +294,7 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         sim_s = time.perf_counter() - t1
 
         field = _field_of(model, handle, gmx, gmd, Pmx)
-        scored = _score_all(model, handle, q, gmx, gmd, Pmx, final, X, z_cuts, field)
+        scored = _score_all(model, handle, q, gmx, gmd, Pmx, final, X, frames["maxilla"], field)
         clusters = _cluster(model, gmd, scored, sample)
         bvh = (jawmod.coal_bvh(*mesh_of(model, gmx)), jawmod.coal_bvh(*mesh_of(model, gmd)))
         cands = []
@@ -306,6 +314,8 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
             "setup_s": setup_s, "simulate_s": sim_s, "starts_per_second": starts / sim_s, "total_s": time.perf_counter() - t0,
             "error_bound_mm": handle.pairs[0].error_bound * 1e3, "offset_mm": handle.pairs[0].offset * 1e3,
             "reference_pos": ref_pos.tolist(), "reference_quat": ref_quat.tolist(),
+            "arches": {k: f.as_dict() for k, f in frames.items()},
+            "midline_offset_mm": float((frames["mandible"].origin - frames["maxilla"].origin) @ frames["maxilla"].left * 1e3),
             "candidates": [c.as_dict() for c in cands],
             "landscape": [{"start": s["start"].tolist(), "score": s["score"], "pos": s["pos"].tolist(),
                            "error": pose_error(model, gmd, s["pos"], s["quat"], ref_pos, ref_quat, sample[:200])}
@@ -365,7 +375,7 @@ def _field_of(model, handle, gmx, gmd, Pmx):
     return field
 
 
-def _score_all(model, handle, q, gmx, gmd, Pmx, final, X, z_cuts, field) -> list[dict]:
+def _score_all(model, handle, q, gmx, gmd, Pmx, final, X, frame, field) -> list[dict]:
     """Every settled pose's scores (state layout: time, qpos (nq), qvel (nv), ...)."""
     nq, nv = model.nq, model.nv
     qpos = final[:, 1:1 + nq]
@@ -374,7 +384,7 @@ def _score_all(model, handle, q, gmx, gmd, Pmx, final, X, z_cuts, field) -> list
     scored = []
     for i in range(len(final)):
         quat = qpos[i, 3:7] / np.linalg.norm(qpos[i, 3:7])
-        s = _score_pose(model, q, gmx, gmd, Pmx, qpos[i, :3], quat, qvel[i], offset, z_cuts, field)
+        s = _score_pose(model, q, gmx, gmd, Pmx, qpos[i, :3], quat, qvel[i], offset, frame, field)
         s.update(pos=qpos[i, :3].copy(), quat=quat, start=X[i])
         scored.append(s)
     return scored
@@ -445,9 +455,9 @@ def write_outputs(res: dict, out_dir, picture: bool = True) -> list[str]:
 
 
 def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, threads=None, seed=0, top=5,
-         out="out/occlusion", progress=True) -> int:
+         out="out/occlusion", progress=True, pair: dict | None = None, contact_map: bool = True) -> int:
     res = search(scene, data=data, starts=starts, translation=translation, rotation_deg=rotation_deg,
-                 threads=threads, seed=seed, top=top, progress=progress, out_dir=out)
+                 threads=threads, seed=seed, top=top, progress=progress, out_dir=out, pair=pair)
     try:
         print(f"{res['starts']} starts closed in {res['simulate_s']:.1f} s on {res['threads']} thread(s) "
               f"({res['starts_per_second']:.1f} starts/s), IST ε1+ε2 {res['error_bound_mm']:.2f} mm")
@@ -457,7 +467,23 @@ def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, t
                    if c["polished_turn_deg"] is not None else "")
             print(f"#{c['rank']} score {c['score']:.2f}  {c['starts']} start(s)  {c['contacts']} contacts in "
                   f"{', '.join(c['regions']) or 'no region'}  vs reference: {e['rms_mm']:.3f} mm RMS, {e['rotation_deg']:.3f}°{pol}")
-        for f in write_outputs(res, out):
+        written = write_outputs(res, out)
+        if contact_map and res["candidates"]:
+            from . import contactmap
+
+            best = res["candidates"][0]
+            model, handle = res["_model"], res["_handle"]
+            cmap = contactmap.contact_map(model, handle, best["pos"], best["quat"])
+            written += contactmap.write(cmap, arch_frames(model, handle.geoms["maxilla"], handle.geoms["mandible"]), out)
+            for name in ("maxilla", "mandible"):
+                rows = ", ".join(f"{r['region']} {r['contact_area_mm2']:.1f} mm² (closest {r['closest_mm']:.3f} mm)"
+                                 for r in cmap[name].regions if r["closest_mm"] < 0.4)
+                ck = cmap[name].check
+                print(f"contact map   {name}: {rows or 'nothing within 0.4 mm'}; "
+                      f"exact check on {ck.get('sampled', 0)} vertices: {ck.get('above_upper', 0)} above the certified upper "
+                      f"bound, {ck.get('below_lower_outside', 0)} non-penetrating below the lower bound, estimate within "
+                      f"{ck.get('max_error_of_estimate_mm', 0):.3f} mm")
+        for f in written:
             print(f"written       {f}")
     finally:
         res["_handle"].detach()

@@ -118,23 +118,20 @@ def chewing_motion(n, hinge, *, contact_offset=0.0, open_deg=8.0, excursion=0.00
 
 
 
-def load_pair(folder=None):
-    """A jaw pair and its occlusion: the bundled models (default) or any folder holding
-    ``maxilla`` and ``mandible`` meshes (``.obj``/``.stl``/``.ply``), e.g. ``../shared/data/jaw``.
+MUJOCO_STL_FACES = 200_000  # MuJoCo's binary STL importer refuses more faces
 
-    Returns
-    -------
-    maxilla, mandible : mjist.Mesh
-    info : dict
-        ``mandible_pose`` (4x4, ground-truth occlusion: from ``occlusion.json`` when the folder
-        has one, else the pose where coal says the meshes first touch, moving the mandible
-        vertically from the stored pose) and ``hinge`` (condyle centre, for the opening axis).
-    """
-    import json
+
+def _find(folder, maxilla, mandible) -> dict:
     from pathlib import Path
 
-    from ..geometry.mesh import load_mesh
-
+    if maxilla is not None or mandible is not None:
+        if maxilla is None or mandible is None:
+            raise ValueError("pass both maxilla and mandible mesh files (or a folder holding them)")
+        paths = {"maxilla": Path(maxilla), "mandible": Path(mandible)}
+        for name, p in paths.items():
+            if not p.exists():
+                raise FileNotFoundError(f"{name} mesh {p} does not exist: check the path")
+        return paths
     folder = Path(folder) if folder is not None else BUNDLED
     paths = {}
     for name in ("maxilla", "mandible"):
@@ -142,16 +139,155 @@ def load_pair(folder=None):
         if not found:
             raise FileNotFoundError(f"no {name}.obj/.stl/.ply in {folder}: pass the folder of a jaw pair")
         paths[name] = found[0]
-    mx = load_mesh(paths["maxilla"])
-    md = load_mesh(paths["mandible"])
-    meta = folder / "occlusion.json"
-    if meta.exists():
-        j = json.loads(meta.read_text())
-        info = {"mandible_pose": np.array(j["mandible_pose"]), "hinge": np.array(j["hinge"]), "source": str(meta)}
+    return paths
+
+
+def _load(path, name: str, repair: str, notes: list):
+    """A jaw mesh validated; an open surface closed with MeshFix when ``repair`` is "auto" or "on"."""
+    import warnings
+
+    from ..errors import MeshError
+    from ..geometry.mesh import load_mesh
+
+    if repair not in ("auto", "on", "off", True, False):
+        raise ValueError(f"repair={repair!r}: use auto (close open scans), on or off")
+    try:
+        return load_mesh(path, repair=repair in ("on", True))
+    except MeshError as exc:
+        if repair != "auto" or "not closed" not in str(exc):
+            raise MeshError(f"{name} ({path}): {exc}") from exc
+    mesh = load_mesh(path, repair=True)
+    if mesh.closure is not None:
+        msg = (f"{name} is an open surface: {mesh.closure.describe()}. The tree's certified error holds for the "
+               "closed surface; the added faces are not anatomy, so contacts on them are not real")
+        warnings.warn(msg, stacklevel=3)
+        notes.append(msg)
+    return mesh
+
+
+def _in_jaw_frame(mesh, o, jaw: str):
+    from ..geometry.mesh import Mesh
+
+    s = o.scales[0 if jaw == "maxilla" else 1]
+    if o.identity:
+        return mesh
+    return Mesh(vertices=np.ascontiguousarray(o.apply(mesh.vertices, jaw)), faces=mesh.faces, volume=mesh.volume * s ** 3,
+                area=mesh.area * s ** 2, shells=mesh.shells, repairs=mesh.repairs, closure=mesh.closure)
+
+
+def _orientation(mx, md, units, up, notes: list):
+    """Units, up and anterior of the pair (``orient``, ``arch``) and the touching offset along up."""
+    from . import arch, orient
+
+    unit, ev_u = orient.detect_units(mx.vertices, md.vertices, units)
+    sx, sd = orient.scales(unit)
+    Vx, Vd = mx.vertices * sx, md.vertices * sd
+    bx, bd = coal_bvh(Vx, mx.faces), coal_bvh(Vd, md.faces)
+    up_axis, ev_up = orient.detect_up(bx, bd, up)
+    u = np.asarray(orient.AXES[up_axis])
+    touch = orient.touch_offset(bx, bd, u)
+    pts = arch.occlusal_points(Vx, Vd + touch * u, md.faces)
+    fx = arch.arch_frame(pts, u)
+    anterior = orient.snap(fx.anterior, up_axis)
+    detected = {}
+    if str(units) == "auto":
+        detected["units"] = {"value": unit, "largest_extent_file_units": ev_u["extent"]}
+    if up == "auto":
+        detected["up"] = {"value": up_axis, **ev_up}
+    detected["anterior"] = {"value": [round(float(a), 4) for a in fx.anterior], "snapped": [float(a) for a in anterior]}
+    o = orient.Orientation(unit, up_axis, anterior, orient.frame_matrix(up_axis, anterior), (sx, sd), detected)
+    ant = next((k for k, v in orient.AXES.items() if np.allclose(v, anterior)), np.round(anterior, 3).tolist())
+    notes.append(f"units {unit}{' (detected)' if 'units' in detected else ''}, up {up_axis}"
+                 f"{' (detected)' if 'up' in detected else ''}, anterior {ant} (from the arch's shape)")
+    return o, touch
+
+
+def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None, repair="auto"):
+    """A jaw pair in the jaw frame (metres, +y up, +z anterior) and its occlusion.
+
+    Parameters
+    ----------
+    folder : path, optional
+        A folder holding ``maxilla`` and ``mandible`` meshes (``.obj``/``.stl``/``.ply``), e.g.
+        ``../shared/data/jaw``; default the bundled jaws. Or give ``maxilla`` and ``mandible`` files.
+    units : "auto", "mm", "m" or "mm,m"
+        The files' length unit (per jaw when they differ); detected from the jaws' size.
+    up : "auto", "+x", "-x", "+y", "-y", "+z" or "-z"
+        The file axis pointing superior; detected from how the pair opens (``orient``).
+    hinge : (3,), optional
+        Centre of the condylar axis, in the maxilla file's coordinates and units. Default: the
+        condyles when the mandible has them, else Bonwill's estimate from the incisal point.
+    repair : "auto", "on" or "off"
+        "auto" closes an open surface (a scan) with MeshFix and warns; "off" refuses it.
+
+    Returns
+    -------
+    maxilla, mandible : mjist.Mesh
+        In the jaw frame.
+    info : dict
+        ``mandible_pose`` (4x4, the occlusion: from ``occlusion.json`` when the folder has one,
+        else where coal says the jaws first touch moving the mandible along up), ``hinge``
+        (mandible mesh coordinates) and ``hinge_source``, ``orientation``, ``arches`` (each
+        arch's frame, ``arch.ArchFrame``), ``teeth_only`` and ``inertial`` (anatomical mass
+        properties for a teeth-only mandible), ``paths``, ``notes`` (what was detected or repaired).
+
+    Raises
+    ------
+    ValueError, MeshError, FileNotFoundError
+        Missing files, bad meshes, units or axes that cannot be told or contradict the
+        geometry, arches that do not face each other; the message names the flag that fixes it.
+    """
+    import json
+
+    from . import arch
+
+    paths = _find(folder, maxilla, mandible)
+    notes: list[str] = []
+    raw = {name: _load(p, name, repair, notes) for name, p in paths.items()}
+    o, touch = _orientation(raw["maxilla"], raw["mandible"], units, up, notes)
+    mx, md = _in_jaw_frame(raw["maxilla"], o, "maxilla"), _in_jaw_frame(raw["mandible"], o, "mandible")
+    P = np.eye(4)
+    P[UP, 3] = touch
+    info = {"mandible_pose": P, "source": "coal first touch"}
+    meta = paths["maxilla"].parent / "occlusion.json"
+    if maxilla is None:  # a pair folder may carry its designed occlusion
+        if meta.exists():
+            j = json.loads(meta.read_text())
+            S = np.eye(4)
+            S[:3, :3] = o.scales[0] * o.R
+            info = {"mandible_pose": S @ np.array(j["mandible_pose"]) @ np.linalg.inv(S), "source": str(meta),
+                    "hinge": o.apply(np.array(j["hinge"])[None], "mandible")[0]}
+    pose = info["mandible_pose"]
+    Vd_occ = md.vertices @ pose[:3, :3].T + pose[:3, 3]
+    frames = {"maxilla": arch.arch_frame(arch.occlusal_points(mx.vertices, Vd_occ, md.faces), (0.0, 1.0, 0.0)),
+              "mandible": arch.arch_frame(arch.occlusal_points(Vd_occ, mx.vertices, mx.faces), (0.0, 1.0, 0.0))}
+    if up == "auto":  # the file names say which jaw is upper; a maxilla with rami is a mandible
+        fx = frames["maxilla"]
+        below = -float(np.min((mx.vertices - fx.origin) @ fx.up))
+        if below > arch.RAMUS_HEIGHT:
+            raise ValueError(
+                f"the maxilla reaches {below * 1e3:.0f} mm below the occlusal plane, as a mandible's rami do: upper and "
+                f"lower jaws swapped? swap the two files, or pass up={o.up} (--up) if the maxilla really is this shape")
+    teeth_only = not arch.has_rami(Vd_occ, frames["mandible"])
+    to_mesh = np.linalg.inv(pose)  # occlusion -> mandible mesh coordinates
+    if hinge is not None:
+        h = o.apply(np.asarray(hinge, float)[None], "maxilla")[0]
+        info["hinge"], info["hinge_source"] = to_mesh[:3, :3] @ h + to_mesh[:3, 3], "given"
+    elif "hinge" in info:
+        info["hinge_source"] = "occlusion.json"
+    elif teeth_only:
+        h = arch.bonwill_hinge(frames["mandible"])
+        info["hinge"], info["hinge_source"] = to_mesh[:3, :3] @ h + to_mesh[:3, 3], "Bonwill estimate"
     else:
-        touch = touching_offset(coal_bvh(mx.vertices, mx.faces), coal_bvh(md.vertices, md.faces))
-        P = np.eye(4)
-        P[UP, 3] = touch
-        info = {"mandible_pose": P, "hinge": hinge_point(md.vertices), "source": "coal first touch"}
-    info["paths"] = {k: str(v) for k, v in paths.items()}
+        info["hinge"], info["hinge_source"] = hinge_point(md.vertices), "condyles"
+    if teeth_only:
+        inertial = arch.anatomical_inertia(frames["mandible"])
+        inertial["pos"] = to_mesh[:3, :3] @ inertial["pos"] + to_mesh[:3, 3]
+        info["inertial"] = inertial
+        notes.append(f"teeth-only mandible: hinge from {info['hinge_source']}, mass and inertia of a whole "
+                     f"mandible ({arch.MANDIBLE_MASS * 1e3:.0f} g)")
+    info.update(orientation=o, arches=frames, teeth_only=teeth_only, notes=notes,
+                paths={k: str(v) for k, v in paths.items()},
+                export=not o.identity or any(m.closure is not None or m.repairs for m in raw.values())
+                or any(p.suffix.lower() == ".stl" and len(m.faces) > MUJOCO_STL_FACES for p, m in zip(paths.values(), raw.values())))
     return mx, md, info

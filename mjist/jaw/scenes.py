@@ -43,13 +43,25 @@ def _settings(max_error, rest: str) -> str:
     return f'  <custom>\n    <text name="mjist_geoms" data="maxilla mandible"/>{me}\n{rest}\n  </custom>'
 
 
+def _inertial(inertial, R=np.eye(3), t=(0.0, 0.0, 0.0), indent: int = 6) -> str:
+    """An ``<inertial>`` element for mass properties given in mandible mesh coordinates, placed in
+    a body whose frame maps mesh coordinates by ``R``, ``t`` (empty when ``inertial`` is None)."""
+    if inertial is None:
+        return ""
+    pos = R @ np.asarray(inertial["pos"], float) + np.asarray(t, float)
+    II = R @ np.asarray(inertial["inertia"], float) @ R.T
+    full = (II[0, 0], II[1, 1], II[2, 2], II[0, 1], II[0, 2], II[1, 2])
+    return (" " * indent + '<!-- mass properties of a whole mandible: the scanned part is only the teeth -->\n'
+            + " " * indent + f'<inertial pos="{_v(pos)}" mass="{inertial["mass"]:g}" fullinertia="{_v(full)}"/>\n')
+
+
 def _assets(maxilla: str, mandible: str) -> str:
     return f'  <asset>\n    <mesh name="maxilla" file="{maxilla}"/>\n    <mesh name="mandible" file="{mandible}"/>\n  </asset>'
 
 
 def jaw_closure_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0.0), *, half_width: float = 0.045,
                     open_deg: float = OPEN_DEG, muscle_force: float = 40.0, meshdir: str | None = None,
-                    max_error: float | None = 5e-4, title: str = "bundled jaw pair") -> str:
+                    max_error: float | None = 5e-4, title: str = "bundled jaw pair", inertial: dict | None = None) -> str:
     """MJCF text of the jaw-closure scene.
 
     Parameters
@@ -68,6 +80,9 @@ def jaw_closure_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 
         Peak force of each of the four closing muscles (N).
     max_error : float, optional
         ``mjist_max_error`` written into the ``<custom>`` settings (metres).
+    inertial : dict, optional
+        The mandible's mass properties (``mass``, ``pos``, ``inertia`` in mesh coordinates), for
+        a mandible scanned without its bone (``arch.anatomical_inertia``); default from the mesh.
     """
     h = np.asarray(hinge, float)
     w = float(half_width)
@@ -114,7 +129,7 @@ def jaw_closure_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 
         <joint name="hinge" type="hinge" axis="1 0 0" pos="{_v(h)}" range="-3 25" damping="0.02"/>
         <joint name="protrusion" type="slide" axis="0 0 1" pos="{_v(h)}" range="-0.003 0.003" stiffness="300" damping="2"/>
         <joint name="lateral" type="slide" axis="1 0 0" pos="{_v(h)}" range="-0.003 0.003" stiffness="300" damping="2"/>
-        <geom name="mandible" type="mesh" mesh="mandible" density="1900" rgba="0.75 0.82 0.93 1"/>
+{_inertial(inertial, indent=8)}        <geom name="mandible" type="mesh" mesh="mandible" density="1900" rgba="0.75 0.82 0.93 1"/>
 {sj}
       </body>
     </body>
@@ -159,7 +174,7 @@ def _quat(R) -> np.ndarray:
 
 def haptic_jaw_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0.0), *, open_deg: float = 3.0,
                    max_error: float | None = 5e-4, law: str = "contacts", meshdir: str | None = None,
-                   title: str = "bundled jaw pair") -> str:
+                   title: str = "bundled jaw pair", inertial: dict | None = None) -> str:
     """MJCF text of the haptic scene: a free mandible driven by a mocap handle through a virtual coupling.
 
     The maxilla is fixed; the mandible is a free body (no gravity: the device carries it); the
@@ -189,7 +204,7 @@ def haptic_jaw_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0
     </body>
     <body name="mandible" pos="{_v(to)}" quat="{_v(qo)}">
       <freejoint name="mandible"/>
-      <geom name="mandible" type="mesh" mesh="mandible" density="1900" rgba="0.75 0.82 0.93 1"/>
+{_inertial(inertial)}      <geom name="mandible" type="mesh" mesh="mandible" density="1900" rgba="0.75 0.82 0.93 1"/>
     </body>
     <body name="handle" mocap="true" pos="{_v(to)}" quat="{_v(qo)}">
       <geom type="sphere" size="0.003" contype="0" conaffinity="0" rgba="0.9 0.3 0.2 0.6"/>
@@ -205,14 +220,23 @@ def haptic_jaw_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0
 
 def occlusion_search_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 0.0, 0.0), *, closing: float = 30.0,
                          lin_damping: float = 3.0, ang_damping: float = 0.003, tmj_timeconst: float = 0.01,
-                         max_error: float | None = 5e-4, meshdir: str | None = None, title: str = "bundled jaw pair") -> str:
+                         max_error: float | None = 5e-4, meshdir: str | None = None, title: str = "bundled jaw pair",
+                         inertial: dict | None = None, tmj: bool = True) -> str:
     """MJCF text of the occlusion-search scene: a free, damped mandible pulled onto the maxilla.
 
     ``closing`` (m/s²) is the closing acceleration standing in for the elevator muscles (the
     scene's gravity points from the mandible to the maxilla); the free joint's damping settles
     the mandible where the cusps hold it. IST constraint contacts (offset ``mean``), low friction
-    (wet enamel), so the cusps can guide it into intercuspation.
+    (wet enamel), so the cusps can guide it into intercuspation. ``tmj`` seats the condyles in a
+    soft ball joint at the hinge; off, the mandible is free and only the teeth and the closing
+    force decide its pose. ``inertial`` as for ``jaw_closure_xml``.
     """
+    tmj_xml = (f"""  <equality>
+    <!-- the temporomandibular joints seat the condyles in their fossae: a soft ball joint at the
+         condylar axis' centre (it yields, so the teeth, not the joint, decide the final pose) -->
+    <connect name="tmj" body1="mandible" body2="skull" anchor="{_v(jaw_to_world(np.eye(3), np.asarray(mandible_pos, float) + np.asarray(hinge, float))[1])}" solref="{tmj_timeconst:g} 1"/>
+  </equality>
+""" if tmj else "")
     Rc, tc = mandible_pose(hinge, mandible_pos, 0.0)
     qc = _quat(Rc)
     md = f'\n  <compiler meshdir="{meshdir}"/>' if meshdir else ""
@@ -242,15 +266,10 @@ def occlusion_search_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 
       <joint name="y" type="slide" axis="0 1 0" damping="{lin_damping:g}"/>
       <joint name="z" type="slide" axis="0 0 1" damping="{lin_damping:g}"/>
       <joint name="rotation" type="ball" damping="{ang_damping:g}"/>
-      <geom name="mandible" type="mesh" mesh="mandible" pos="{_v(tc)}" quat="{_v(qc)}" density="1900" rgba="0.75 0.82 0.93 1"/>
+{_inertial(inertial, Rc, tc)}      <geom name="mandible" type="mesh" mesh="mandible" pos="{_v(tc)}" quat="{_v(qc)}" density="1900" rgba="0.75 0.82 0.93 1"/>
     </body>
   </worldbody>
-  <equality>
-    <!-- the temporomandibular joints seat the condyles in their fossae: a soft ball joint at the
-         condylar axis' centre (it yields, so the teeth, not the joint, decide the final pose) -->
-    <connect name="tmj" body1="mandible" body2="skull" anchor="{_v(jaw_to_world(np.eye(3), np.asarray(mandible_pos, float) + np.asarray(hinge, float))[1])}" solref="{tmj_timeconst:g} 1"/>
-  </equality>
-  <keyframe>
+{tmj_xml}  <keyframe>
     <key name="occlusion" qpos="0 0 0 1 0 0 0"/>
   </keyframe>
 </mujoco>
@@ -263,29 +282,59 @@ def muscle_half_width(mandible_vertices) -> float:
     return 0.5 * float(x.max() - x.min()) * 0.85
 
 
-def pair_scene(folder, out_dir, kind: str, **kwargs):
-    """Write the ``kind`` scene ("closure", "occlusion" or "haptic") of the jaw pair in ``folder``
-    (absolute mesh paths, its hinge and occlusion, ``max_error`` 0.3 mm unless given) as
-    ``out_dir/<scene>.xml``; return the path. ``kwargs`` go to the scene's writer."""
+KINDS = {"closure": "jaw_closure.xml", "occlusion": "occlusion_search.xml", "haptic": "haptic_jaw.xml"}
+
+
+def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None,
+               repair="auto", tmj: bool = True, output=None, progress: bool = True, **kwargs):
+    """Write the ``kind`` scene ("closure", "occlusion" or "haptic") of a user's jaw pair; return its path.
+
+    The pair (``folder``, or ``maxilla`` + ``mandible`` files) is read by ``pair.load_pair`` with
+    ``units``, ``up``, ``hinge`` and ``repair`` (detected when "auto"). A pair already in the
+    jaw frame is referenced where it lies; any other (converted, repaired, or an STL beyond
+    MuJoCo's 200 k-face limit) is written once as OBJ in the jaw frame beside the scene.
+    ``tmj`` keeps the occlusion search's soft TMJ ball joint at the hinge (also at Bonwill's
+    estimate: the joint yields, and without it the closing force behind the arch tips a free
+    teeth-only mandible over its molars). ``pair.json`` beside the scene records what
+    was detected. ``max_error`` is 0.3 mm unless given; other ``kwargs`` go to the scene writer.
+    """
+    import json
     import os
     from pathlib import Path
 
     from .pair import load_pair
 
-    kinds = {"closure": (jaw_closure_xml, "jaw_closure.xml"), "occlusion": (occlusion_search_xml, "occlusion_search.xml"),
-             "haptic": (haptic_jaw_xml, "haptic_jaw.xml")}
-    if kind not in kinds:
-        raise ValueError(f"scene kind {kind!r} must be one of {', '.join(kinds)}")
-    make_xml, filename = kinds[kind]
-    _, md, info = load_pair(folder)
+    if kind not in KINDS:
+        raise ValueError(f"scene kind {kind!r} must be one of {', '.join(KINDS)}")
+    writers = {"closure": jaw_closure_xml, "occlusion": occlusion_search_xml, "haptic": haptic_jaw_xml}
+    mx, md, info = load_pair(folder, maxilla=maxilla, mandible=mandible, units=units, up=up, hinge=hinge, repair=repair)
+    path = Path(output) if output else Path(out_dir) / KINDS[kind]
+    os.makedirs(path.parent, exist_ok=True)
+    files = {k: os.path.abspath(v) for k, v in info["paths"].items()}
+    if info["export"]:
+        import trimesh
+
+        for name, m in (("maxilla", mx), ("mandible", md)):
+            files[name] = os.path.abspath(path.parent / f"{name}.jaw.obj")
+            trimesh.Trimesh(m.vertices, m.faces, process=False).export(files[name])
     kwargs.setdefault("max_error", 3e-4)
     if kind == "closure":
-        kwargs.setdefault("half_width", muscle_half_width(md.vertices))
-    xml = make_xml(os.path.abspath(info["paths"]["maxilla"]), os.path.abspath(info["paths"]["mandible"]),
-                   np.asarray(info["hinge"], float), info["mandible_pose"][:3, 3], title=f"jaw pair of {folder}", **kwargs)
-    os.makedirs(out_dir, exist_ok=True)
-    path = Path(out_dir) / filename
+        kwargs.setdefault("half_width", 0.045 if info["teeth_only"] else muscle_half_width(md.vertices))
+    if kind == "occlusion":
+        kwargs.setdefault("tmj", bool(tmj))
+    kwargs.setdefault("inertial", info.get("inertial"))
+    title = f"jaw pair of {folder}" if maxilla is None else f"jaw pair {maxilla} + {mandible}"
+    xml = writers[kind](files["maxilla"], files["mandible"], np.asarray(info["hinge"], float), info["mandible_pose"][:3, 3],
+                        title=title, **kwargs)
     path.write_text(xml)
+    summary = {"scene": str(path), "kind": kind, "meshes": files, "hinge": np.asarray(info["hinge"]).tolist(),
+               "hinge_source": info["hinge_source"], "occlusion_source": info["source"], "teeth_only": info["teeth_only"],
+               "orientation": info["orientation"].as_dict(), "arches": {k: f.as_dict() for k, f in info["arches"].items()},
+               "notes": info["notes"]}
+    (path.parent / "pair.json").write_text(json.dumps(summary, indent=1))
+    if progress:
+        for n in info["notes"]:
+            print(f"pair: {n}")
     return path
 
 

@@ -54,12 +54,14 @@ def test_bad_shapes_and_indices():
 
 def test_open_mesh_and_repair():
     b = box()
+    hole = b.area_faces[0]
     b.update_faces(np.arange(1, len(b.faces)))  # drop one triangle: a hole
     with pytest.raises(MeshError, match="not closed.*open .boundary. edges.*repair=True"):
         load_mesh(b)
     fixed = load_mesh(b, repair=True)
     assert fixed.volume == pytest.approx(6.0)
-    assert any("filled holes" in r for r in fixed.repairs)
+    assert any("closed 3 open edges" in r for r in fixed.repairs)
+    assert fixed.closure.added_area == pytest.approx(hole, rel=1e-6)
 
 
 def test_non_manifold():
