@@ -142,10 +142,8 @@ def _find(folder, maxilla, mandible) -> dict:
     return paths
 
 
-def _load(path, name: str, repair: str, notes: list):
+def _load(path, name: str, repair: str):
     """A jaw mesh validated; an open surface closed with MeshFix when ``repair`` is "auto" or "on"."""
-    import warnings
-
     from ..errors import MeshError
     from ..geometry.mesh import load_mesh
 
@@ -156,13 +154,25 @@ def _load(path, name: str, repair: str, notes: list):
     except MeshError as exc:
         if repair != "auto" or "not closed" not in str(exc):
             raise MeshError(f"{name} ({path}): {exc}") from exc
-    mesh = load_mesh(path, repair=True)
-    if mesh.closure is not None:
-        msg = (f"{name} is an open surface: {mesh.closure.describe()}. The tree's certified error holds for the "
-               "closed surface; the added faces are not anatomy, so contacts on them are not real")
+    return load_mesh(path, repair=True)
+
+
+def _closure_notes(raw: dict, o, notes: list) -> None:
+    """Warn, in millimetres of the jaw frame, what closing an open scan added."""
+    import warnings
+
+    for i, (name, mesh) in enumerate(raw.items()):
+        c = mesh.closure
+        if c is None:
+            continue
+        s = o.scales[i] * 1e3  # file units -> mm
+        where = ", ".join(f"{a:.1f}" for a in o.apply(c.added_centre[None], name)[0] * 1e3)
+        msg = (f"{name} is an open surface ({c.boundary_edges} open edges): MeshFix added {c.added_area * s * s:.1f} mm² "
+               f"around ({where}) mm in the jaw frame and kept {100 * c.kept_fraction:.1f}% of the scan's vertices. The "
+               "tree's certified error holds for the closed surface; the added faces are not anatomy, so contacts on "
+               "them are not real")
         warnings.warn(msg, stacklevel=3)
         notes.append(msg)
-    return mesh
 
 
 def _in_jaw_frame(mesh, o, jaw: str):
@@ -243,8 +253,9 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
 
     paths = _find(folder, maxilla, mandible)
     notes: list[str] = []
-    raw = {name: _load(p, name, repair, notes) for name, p in paths.items()}
+    raw = {name: _load(p, name, repair) for name, p in paths.items()}
     o, touch = _orientation(raw["maxilla"], raw["mandible"], units, up, notes)
+    _closure_notes(raw, o, notes)
     mx, md = _in_jaw_frame(raw["maxilla"], o, "maxilla"), _in_jaw_frame(raw["mandible"], o, "mandible")
     P = np.eye(4)
     P[UP, 3] = touch

@@ -272,7 +272,7 @@ def test_distance_queries_between_steps_leave_the_steps_alone(comb_file, cache):
                 work += [s1["visits"] - s0["visits"], s1["front_calls"] - s0["front_calls"]]
                 traj.append(np.concatenate([d.qpos, d.qvel, [d.ncon]]))
                 if query:
-                    assert mujoco.mj_geomDistance(m, d, 0, 1, 0.05, None) < 0.05
+                    assert mujoco.mj_geomDistance(m, d, 0, 1, 0.003, None) < 0.003
             runs.append((np.array(traj), work))
     (ta, wa), (tb, wb) = runs
     assert ta[-1, -1] > 0 and wa[1] > 0  # resting in contact, the front in use

@@ -308,7 +308,7 @@ def test_penetration_volume_is_zero_apart_continuous_and_below_the_true_overlap(
     q = Query(ta, tb)
     I = np.eye(4)
     vols = []
-    xs = np.linspace(3.0, 0.0, 601)
+    xs = np.linspace(3.0, 0.0, 241)
     for x in xs:
         P = np.eye(4)
         P[:3, 3] = [x, 0.1, 0.05]
