@@ -39,7 +39,9 @@ def test_scene_file_is_the_generator_output():
     assert SCENE.read_text() == haptic_jaw_xml("maxilla.obj", "mandible.obj", j["hinge"], np.array(j["mandible_pose"])[:3, 3])
 
 
-@pytest.mark.parametrize("trajectory", ["close", "lateral_left", "protrusion", "chewing"])
+@pytest.mark.parametrize("trajectory", ["close", "chewing",  # chewing holds lateral and protrusive moves
+                                        pytest.param("lateral_left", marks=pytest.mark.slow),
+                                        pytest.param("protrusion", marks=pytest.mark.slow)])
 def test_forces_against_coal_along_trajectories(scene, trajectory):
     """Every 5th step: coal distance > ε ⇒ no contact force; contact force ⇒ coal says the meshes collide."""
     model, h, gmx, gmd, bvh = scene

@@ -402,7 +402,7 @@ def test_scene_file_is_the_generator_output():
 
 
 def test_jaw_contacts_against_coal_at_many_poses(cache):
-    """Bundled jaws, 80 poses around the occlusion: distances, overlaps and contact points vs coal."""
+    """Bundled jaws, 40 poses around the occlusion: distances, overlaps and contact points vs coal."""
     model, h = A.load_model(ROOT / "models" / "jaw_closure.xml", cache_dir=cache, offset="none")
     try:
         gmx, gmd = h.geoms["maxilla"], h.geoms["mandible"]
@@ -413,7 +413,7 @@ def test_jaw_contacts_against_coal_at_many_poses(cache):
         occ = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "occlusion")
         rng = np.random.default_rng(11)
         touching = separated = 0
-        for _ in range(80):
+        for _ in range(40):
             mujoco.mj_resetDataKeyframe(model, d, occ)
             d.qpos[:3] += [np.radians(rng.uniform(-0.4, 2.0)), rng.uniform(-5e-4, 5e-4), rng.uniform(-5e-4, 5e-4)]
             mujoco.mj_forward(model, d)

@@ -1,5 +1,6 @@
-"""Stress and fault injection (issue 7, first part): a quick subset runs in CI; ``MJIST_STRESS=1``
-(or ``-m stress`` with it) runs the long versions."""
+"""Stress and fault injection: the quick ones run in CI; the long runs (thousands of attach
+cycles, extreme mesh units, long chewing) are also marked ``slow`` (``-m slow``), and
+``MJIST_STRESS=1`` makes every run its long version."""
 import os
 import resource
 
@@ -40,6 +41,7 @@ def _box_scene(tmp_path, scale=1.0, eps=None, shape=(1.0, 1.0, 1.0)):
 
 
 @pytest.mark.stress
+@pytest.mark.slow
 def test_thousands_of_attach_detach_cycles(tmp_path, cache):
     """attach/detach again and again: the table comes back to MuJoCo's, memory stays flat."""
     m = mujoco.MjModel.from_xml_string(_box_scene(tmp_path))
@@ -83,6 +85,7 @@ def test_mesh_changed_since_the_cache_is_rebuilt(tmp_path, cache):
 
 
 @pytest.mark.stress
+@pytest.mark.slow
 @pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
 def test_extreme_mesh_units(tmp_path, cache, scale):
     """Millimetre-sized to kilometre-sized scenes: the distance interval holds against coal."""
@@ -200,6 +203,7 @@ def test_handle_quaternion_drift_changes_nothing(haptic_scene):
 
 
 @pytest.mark.stress
+@pytest.mark.slow
 def test_long_haptic_chewing_has_no_energy_growth(haptic_scene):
     """10⁵ steps (100 s) of chewing cycles in contact with a drifting handle quaternion: finite,
     and the last cycles move and push no harder than the first ones (~6 s of wall time)."""
