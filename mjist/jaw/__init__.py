@@ -1,6 +1,7 @@
-"""The jaw application: jaw pairs and their occlusion (``pair``), the procedural jaw generator
+"""The jaw application: a user's jaw pairs and their occlusion (``pair``, with ``orient`` for
+units and axes and ``arch`` for each arch's own frame), the procedural jaw generator
 (``generator``), scene writers (``scenes``), jaw closure (``demo``), the simulated haptic
-device (``haptic``) and the occlusion search (``occlusion``)."""
+device (``haptic``), the occlusion search (``occlusion``) and its contact map (``contactmap``)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,3 +19,11 @@ def bundled_models() -> Path:
 
 
 BUNDLED = bundled_models()
+
+
+def contact_map(model, handle, pos, quat, **kwargs) -> dict:
+    """The occlusal contact map of an occlusion-search scene with the mandible body at ``pos``,
+    ``quat`` (``contactmap.contact_map``; write it with ``contactmap.write``)."""
+    from .contactmap import contact_map as _contact_map
+
+    return _contact_map(model, handle, pos, quat, **kwargs)

@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 from mjist.errors import MeshError
-from mjist.jaw import arch, generator, orient
+from mjist.jaw import arch, contact_map, generator, orient
 from mjist.jaw.pair import load_pair
 from tests.conftest import load_script
 
@@ -173,7 +173,7 @@ def test_teeth_only_open_scan_runs_end_to_end(pairs, tmp_path):
         assert {r.split("-")[0] for r in best["regions"]} == {"left", "right"}  # a bilateral occlusion
         assert best["error"]["max_mm"] < 0.5 and best["error"]["rotation_deg"] < 1.0  # coarse trees (ε 1 mm)
         assert res["arches"]["maxilla"]["width_mm"] > 40
-        cmap = contactmap.contact_map(res["_model"], res["_handle"], best["pos"], best["quat"], sample=100)
+        cmap = contact_map(res["_model"], res["_handle"], best["pos"], best["quat"], sample=100)
         for name in ("maxilla", "mandible"):
             ck = cmap[name].check
             assert ck["sampled"] > 0 and ck["above_upper"] == 0 and ck["below_lower_outside"] == 0
