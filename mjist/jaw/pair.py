@@ -72,27 +72,11 @@ def coal_collides(bvh_a, pose_a, bvh_b, pose_b, tol: float | None = None) -> boo
 
 
 def touching_offset(bvh_maxilla, bvh_mandible, max_open=0.01, tol=1e-6) -> float:
-    """Vertical mandible offset (m) at which the two meshes just touch, on the separated side.
+    """Vertical mandible offset (m) at which the two meshes just touch, on the separated side:
+    ``orient.touch_offset`` along the jaw frame's +y, within ``±max_open`` of the stored pose."""
+    from .orient import touch_offset
 
-    Bisection on coal's collision test within ``±max_open`` of the stored pose.
-    """
-    I = np.eye(4)
-    P = np.eye(4)
-
-    def hit(y):
-        P[UP, 3] = y
-        return coal_collides(bvh_maxilla, I, bvh_mandible, P)
-
-    a, b = (0.0, -max_open) if hit(0.0) else (max_open, 0.0)  # a collides, b is separated
-    if not hit(a) or hit(b):
-        raise ValueError(f"the jaws do not go from contact to separation within {max_open} m along y")
-    while abs(a - b) > tol:
-        m = 0.5 * (a + b)
-        if hit(m):
-            a = m
-        else:
-            b = m
-    return b
+    return touch_offset(bvh_maxilla, bvh_mandible, np.eye(3)[UP], reach=max_open, tol=tol)
 
 
 def chewing_motion(n, hinge, *, contact_offset=0.0, open_deg=8.0, excursion=0.003, protrusion=0.003,
