@@ -40,7 +40,7 @@ __all__ = [
     "TreeFileError",
     "FORMAT_VERSION",
 ]
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 _MUJOCO_NAMES = {"attach": "attach", "load_model": "attach", "Handle": "handle"}
 

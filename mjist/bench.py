@@ -5,9 +5,9 @@ each stage's timings and peak memory are its own): tree builds (``bench_build``)
 against coal (``bench_query``), the seed paper's Figs. 6-9 with backtracking / multipoint
 speedups in and out of contact (``bench_paper``), scaling with mesh size 10k → 200k
 vertices (``bench_scaling``), MuJoCo step time against native hull / mesh-SDF / CoACD
-(``bench_mujoco``), the haptic loop (``bench_haptic``) and the occlusion search
-(``bench_occlusion``). Then writes into the output folder ``BENCHMARKS.generated.md`` (the
-exact command, machine, versions, wall time per stage and every stage's table) and
+(``bench_mujoco``), the haptic loop (``bench_haptic``), the occlusion search
+(``bench_occlusion``) and cohorts on Ray (``bench_cohort``). Then writes into the output
+folder ``BENCHMARKS.generated.md`` (the exact command, machine, versions, wall time per stage and every stage's table) and
 ``pareto.png``: run time against error for the IST at each ε against coal's exact distance
 (queries) and for each MuJoCo contact mode against the ground-truth occlusion (jaw closure).
 ``--quick`` (small sizes, under 5 minutes) is what CI-sized machines can afford; the full
@@ -36,6 +36,7 @@ STAGES = {
     "mujoco": ("bench_mujoco.py", ["--quick", "--pairs", "bundled"], [], "prefix"),
     "haptic": ("bench_haptic.py", ["--quick"], [], "prefix"),
     "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),
+    "cohort": ("bench_cohort.py", ["--patients", "2", "--spacing", "1.0", "--starts", "16", "--max-error", "0.001"], [], "prefix"),
 }
 
 
@@ -61,6 +62,10 @@ NOTES = {
                "against coal's deepest triangle-pair penetration."),
     "occlusion": ("Occlusion search", "Starts closed in mujoco.rollout threads, the whole search's time, and "
                   "the best candidate's distance from the designed occlusion."),
+    "cohort": ("Cohorts", "A synthetic cohort (known occlusions) run by `mjist cohort` on local Ray with 1 and 2 "
+               "workers, each run from an empty tree cache: patients per minute, the median time per stage, whether "
+               "cohort.csv agrees across worker counts, each search's distance from its patient's design, and the "
+               "time for 1,000 patients on k such machines."),
 }
 
 

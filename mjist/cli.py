@@ -1,4 +1,5 @@
-"""Command line: ``mjist build``, ``info``, ``demo``, ``render``, ``view``, ``haptic``, ``occlusion``, ``bench``."""
+"""Command line: ``mjist build``, ``info``, ``scene``, ``demo``, ``render``, ``view``, ``haptic``, ``occlusion``,
+``cohort``, ``bench``."""
 from __future__ import annotations
 
 import argparse
@@ -191,6 +192,37 @@ def _cmd_scene(args) -> int:
     return _user_errors("scene", run)
 
 
+def _cmd_cohort(args) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from .cohort import run
+
+    def go():
+        if args.input is None and not args.synthetic:
+            raise ValueError("give INPUT (a folder of patient folders, or a manifest CSV) or --synthetic N")
+        try:
+            s = run(args.input, args.out, synthetic_n=args.synthetic, seed=args.seed, spacing=args.spacing,
+                    workers=args.workers, address=args.address, serial=args.serial, retry_failed=args.retry_failed,
+                    progress=not args.quiet, max_error=args.max_error, starts=args.starts, picture=not args.no_picture,
+                    cache=args.cache)
+        except RuntimeError as exc:  # Ray or scikit-image missing: the message says what to install
+            print(f"mjist cohort: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            return 130
+        print(f"cohort        {s['done']} done, {s['failed']} failed ({s['skipped']} from an earlier run) in "
+              f"{s['seconds']:.0f} s on {s['backend']} ({s['slots']} CPUs)")
+        if "design" in s:
+            d = s["design"]
+            print(f"design        {d['within_target']}/{d['patients']} best candidates within 0.2 mm and 1° of the designed "
+                  f"occlusion; median {d['median_max_mm']:.3f} mm, worst {d['worst_max_mm']:.3f} mm / {d['worst_rotation_deg']:.3f}°")
+        for pid in s["failed_patients"]:
+            print(f"failed        {pid} (see cohort.csv and patients/{pid}/result.json)")
+        print(f"written       {s['csv']}" + (f", {s['figure']}" if s["figure"] else ""))
+        return 0 if not s["failed"] else 1
+
+    return _user_errors("cohort", go)
+
+
 def _cmd_bench(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from . import bench
@@ -322,6 +354,28 @@ def _add_scene(sub) -> None:
     sc.set_defaults(func=_cmd_scene)
 
 
+def _add_cohort(sub) -> None:
+    co = sub.add_parser("cohort", help="many jaw pairs: trees, occlusion search and contact map per patient, on Ray, resumable")
+    co.add_argument("input", nargs="?", help="folder of patient folders (each a maxilla + mandible mesh; optional "
+                                             "manifest.csv beside them) or a manifest CSV")
+    co.add_argument("--out", default="out/cohort", help="output folder (default out/cohort); a rerun resumes it")
+    co.add_argument("--synthetic", type=int, default=0, metavar="N",
+                    help="generate N procedural patients with known occlusions into OUT/input and run them")
+    co.add_argument("--spacing", type=float, default=0.5, help="synthetic patients' polygonisation spacing, mm (default 0.5)")
+    co.add_argument("--seed", type=int, default=0, help="synthetic cohort and search seed (default 0)")
+    co.add_argument("--workers", type=int, default=None, help="local Ray CPUs (default: all of this machine's)")
+    co.add_argument("--address", default=None, help="Ray cluster address (default $RAY_ADDRESS, else a local Ray)")
+    co.add_argument("--serial", action="store_true", help="no Ray: one patient at a time in this process")
+    co.add_argument("--retry-failed", action="store_true", help="run patients that failed before again")
+    co.add_argument("--starts", type=int, default=64, help="occlusion-search starts per patient (default 64)")
+    co.add_argument("--max-error", type=float, default=3e-4, help="trees' certified error bound, metres (default 0.0003)")
+    co.add_argument("--cache", default=None, help="tree cache folder (default $MJIST_CACHE or ~/.cache/mjist; "
+                                                   "on a cluster: a folder every node mounts)")
+    co.add_argument("--no-picture", action="store_true", help="skip each patient's rendering")
+    co.add_argument("-q", "--quiet", action="store_true", help="no progress")
+    co.set_defaults(func=_cmd_cohort)
+
+
 def _add_bench(sub) -> None:
     bn = sub.add_parser("bench", help="run the benchmark suite; write BENCHMARKS.generated.md and pareto.png")
     bn.add_argument("--quick", action="store_true", help="small sizes, under 5 minutes")
@@ -338,7 +392,7 @@ def main(argv=None) -> int:
                                 "`mjist build`'s, which are in the mesh's own units; angles in degrees.")
     p.add_argument("--version", action="version", version=f"mjist {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True)
-    for add in (_add_build, _add_info, _add_scene, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_bench):
+    for add in (_add_build, _add_info, _add_scene, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_cohort, _add_bench):
         add(sub)
     args = p.parse_args(argv)
     t = time.perf_counter()

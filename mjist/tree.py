@@ -99,7 +99,7 @@ class InnerSphereTree:
             "info": self.info,
         }
         arrays = {name: getattr(self, "depth_of" if name == "depth" else name) for name in _ARRAYS}
-        tmp = path + ".tmp"
+        tmp = f"{path}.{os.getpid()}.tmp"  # per process: two workers may store the same cached tree
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, meta=np.array(json.dumps(meta)), **arrays)
         os.replace(tmp, path)  # atomic: a crash never leaves a half-written tree

@@ -472,6 +472,17 @@ def unsigned_distance(P, V, F, lo, hi, left, right, start, count, order):
 
 
 @njit(cache=True, parallel=True)
+def points_inside(P, V, F, lo, hi, left, right, start, count, order, dirs):
+    """``inside`` for each of the points ``P (n, 3)``: the ray-cast winding number, nonzero rule."""
+    n = P.shape[0]
+    out = np.empty(n, np.bool_)
+    for i in prange(n):
+        stack = np.empty(STACK, np.int64)
+        out[i] = inside(P[i], V, F, lo, hi, left, right, start, count, order, stack, dirs)
+    return out
+
+
+@njit(cache=True, parallel=True)
 def signed_distance(P, V, F, side, lo, hi, left, right, start, count, order, dirs):
     """Signed distance of points ``P (n, 3)`` to a closed mesh: positive inside.
 
@@ -605,6 +616,12 @@ class BVH:
         """Unsigned distance of points ``P (n, 3)`` to the triangles ``(V, F)`` this BVH was built on."""
         P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 3)
         return unsigned_distance(P, np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64), *self.arrays)
+
+    def contains(self, P, V, F):
+        """Whether each point ``P (n, 3)`` is inside the closed mesh ``(V, F)`` this BVH was built on."""
+        P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 3)
+        return points_inside(P, np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64),
+                             *self.arrays, RAY_DIRS)
 
     @classmethod
     def of_spheres(cls, C, R):

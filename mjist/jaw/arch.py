@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BAND = 6e-3  # m: occlusal points within this height of their median (drops the TMJ contacts)
+BAND = 6e-3  # m: occlusal points within this height of the touching teeth (drops the TMJ surfaces)
 MIDLINE = 4e-3  # m: points this close to the midline count as "on" it (the incisors)
 # fractions of the arch depth behind the most anterior occlusal point: incisors and canines,
 # premolars, then molars
@@ -76,6 +76,13 @@ class ArchFrame:
                 "anterior": self.anterior.tolist(), "depth_mm": self.depth * 1e3, "width_mm": self.width * 1e3,
                 "plane_tilt_deg": self.plane_tilt_deg, "symmetry_mm": self.symmetry_mm,
                 "incisal": self.incisal.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ArchFrame":
+        """The frame ``as_dict`` wrote."""
+        v = {k: np.asarray(d[k], float) for k in ("origin", "left", "up", "anterior", "incisal")}
+        return cls(depth=d["depth_mm"] * 1e-3, width=d["width_mm"] * 1e-3, plane_tilt_deg=d["plane_tilt_deg"],
+                   symmetry_mm=d["symmetry_mm"], **v)
 
 
 def _mirror_error(X, tree, lat_dir, offset) -> float:
@@ -149,8 +156,13 @@ def arch_frame(points, up) -> ArchFrame:
                      plane_tilt_deg=tilt, symmetry_mm=err * 1e3, incisal=incisal)
 
 
-def occlusal_points(V, other_V, other_F, reach: float = 3e-3) -> np.ndarray:
-    """Vertices of ``V`` within ``reach`` (m) of the other surface (both in one frame)."""
+def occlusal_points(V, other_V, other_F, reach: float = 3e-3, up=None) -> np.ndarray:
+    """Vertices of ``V`` within ``reach`` (m) of the other surface (both in one frame).
+
+    With ``up``, only those within ``BAND`` in height of the closest tenth (the teeth that
+    touch: a TMJ keeps its joint space, so its surfaces, also within ``reach`` of each other,
+    drop out however many vertices they have).
+    """
     from ..geometry.bvh import BVH
 
     V = np.asarray(V, float)
@@ -159,7 +171,13 @@ def occlusal_points(V, other_V, other_F, reach: float = 3e-3) -> np.ndarray:
     if cand.size == 0:
         return V[:0]
     d = BVH.of_triangles(other_V, other_F).distance(V[cand], other_V, other_F)
-    return V[cand[d < reach]]
+    keep = d < reach
+    P, d = V[cand[keep]], d[keep]
+    if up is None or len(P) == 0:
+        return P
+    h = P @ (np.asarray(up, float) / np.linalg.norm(up))
+    closest = np.argsort(d, kind="stable")[:max(1, len(d) // 10)]
+    return P[np.abs(h - np.median(h[closest])) < BAND]
 
 
 def has_rami(mandible_V, frame: ArchFrame) -> bool:

@@ -19,10 +19,17 @@ cusp distal to the lower one), upper buccal cusps overlapping the lower ones. Ma
 alveolar body, rami, coronoid processes, condyles. Maxilla: alveolar process, palate and
 basal body, plus the two glenoid fossae (separate closed shells, as in the CBCT maxilla)
 cupping the condyles with a 1.5 mm joint space.
+
+Other patients: ``Anatomy`` varies the arch's width and depth, the crowns' size, crowding of
+the incisors, a class II/III shift of the arches along each other, a posterior crossbite on
+one side and missing teeth. Each change moves the crowns in the ``(s, v)`` plane or the cusps
+of the shared interface, so every variant keeps the guarantee above: its design pose touches
+and nowhere overlaps. ``Anatomy()`` is the bundled pair.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from numba import njit, prange
@@ -75,11 +82,82 @@ CONDYLE_S, CONDYLE_Y, CONDYLE_AXES = 91.0, 27.0, np.array([9.5, 4.8, 4.8])  # se
 JOINT_SPACE = 1.5
 
 
-def tooth_layout():
+CROSSBITE_SHIFT = 4.6  # mm: upper posterior crowns moved lingually so their buccal cusps sit in the lower fossae
+SIDES = ("left", "right")  # side 0 is +x (the patient's left: up × anterior), side 1 is -x
+
+
+@dataclass(frozen=True)
+class Anatomy:
+    """One patient's variation of the design (the defaults are the bundled pair).
+
+    Attributes
+    ----------
+    arch_width, arch_depth : float
+        Scale of the arch's half width and of its depth (the fossa line's ellipse).
+    tooth_size : float
+        Scale of every crown's mesiodistal and buccolingual size.
+    crowding : float
+        mm: lateral incisors displaced lingually by this much, canines buccally by half of it.
+    class_shift : float
+        mm along the arch: > 0 class II (the lower teeth distal to the upper), < 0 class III.
+    crossbite : str
+        "none", "left" or "right": a posterior crossbite (premolars and molars) on that side.
+    missing : tuple
+        Missing teeth as ``(jaw, side, tooth)``: "maxilla"/"mandible", "left"/"right", 0
+        (central incisor) … 6 (second molar).
+    """
+
+    arch_width: float = 1.0
+    arch_depth: float = 1.0
+    tooth_size: float = 1.0
+    crowding: float = 0.0
+    class_shift: float = 0.0
+    crossbite: str = "none"
+    missing: tuple = field(default_factory=tuple)
+
+    def __post_init__(self):
+        if self.crossbite not in ("none",) + SIDES:
+            raise ValueError(f"crossbite={self.crossbite!r}: use none, left or right")
+        for m in self.missing:
+            if len(m) != 3 or m[0] not in ("maxilla", "mandible") or m[1] not in SIDES or not 0 <= int(m[2]) < len(KINDS):
+                raise ValueError(f"missing tooth {m!r}: give (maxilla|mandible, left|right, 0..{len(KINDS) - 1})")
+        for k in ("arch_width", "arch_depth", "tooth_size"):
+            if not 0.7 <= getattr(self, k) <= 1.3:
+                raise ValueError(f"{k}={getattr(self, k)}: keep it within 0.7..1.3 of the design")
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["missing"] = [list(m) for m in self.missing]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Anatomy":
+        return cls(**{**d, "missing": tuple(tuple(m) for m in d.get("missing", ()))})
+
+
+DESIGN = Anatomy()
+
+
+def tooth_layout(anatomy: Anatomy = DESIGN):
     """Crown intervals ``[s0, s1]`` along the arch, lower and upper, one side (mm)."""
-    lo = MIDLINE_GAP + np.concatenate([[0.0], np.cumsum(LOWER_W)[:-1]])
-    up = MIDLINE_GAP + np.concatenate([[0.0], np.cumsum(UPPER_W)[:-1]])
-    return np.stack([lo, lo + LOWER_W], 1), np.stack([up, up + UPPER_W], 1)
+    lw, uw = LOWER_W * anatomy.tooth_size, UPPER_W * anatomy.tooth_size
+    lo = MIDLINE_GAP + max(anatomy.class_shift, 0.0) + np.concatenate([[0.0], np.cumsum(lw)[:-1]])
+    up = MIDLINE_GAP + max(-anatomy.class_shift, 0.0) + np.concatenate([[0.0], np.cumsum(uw)[:-1]])
+    return np.stack([lo, lo + lw], 1), np.stack([up, up + uw], 1)
+
+
+def _tooth_table(anatomy: Anatomy, jaw: str) -> np.ndarray:
+    """Per side and tooth: buccolingual offset of the crown (mm) and 1 if present, ``(2, 7, 2)``."""
+    T = np.zeros((2, len(KINDS), 2))
+    T[:, :, 1] = 1.0
+    T[:, 1, 0] -= anatomy.crowding
+    T[:, 2, 0] += 0.5 * anatomy.crowding
+    if jaw == "maxilla" and anatomy.crossbite != "none":
+        T[SIDES.index(anatomy.crossbite), 3:, 0] -= CROSSBITE_SHIFT
+    for j, side, t in anatomy.missing:
+        if j == jaw:
+            T[SIDES.index(side), int(t), 1] = 0.0
+    return T
 
 
 def _cusp_table(cusps, intervals):
@@ -92,17 +170,32 @@ def _cusp_table(cusps, intervals):
     return np.array(out)
 
 
-def contact_table(lower_cusps, upper_cusps):
-    """Designed occlusal contacts (s, v): upper palatal and lower buccal cusp tips, premolars and molars."""
+def contact_table(lower_cusps, upper_cusps, crossbite: bool = False):
+    """Designed occlusal contacts (s, v) of premolars and molars: the supporting cusp tips, upper
+    palatal and lower buccal (in a crossbite: upper buccal, shifted, and lower lingual)."""
+    if crossbite:
+        up = upper_cusps[(upper_cusps[:, 1] > 4.0) & (upper_cusps[:, 0] > 20.0)]
+        lo = lower_cusps[(lower_cusps[:, 1] < -1.5) & (lower_cusps[:, 0] > 20.0)]
+        return np.vstack([up[:, :2] - [0.0, CROSSBITE_SHIFT], lo[:, :2]])
     pal = upper_cusps[(np.abs(upper_cusps[:, 1]) < 0.5) & (upper_cusps[:, 0] > 20.0)]
     buc = lower_cusps[(lower_cusps[:, 1] > 1.5) & (lower_cusps[:, 0] > 20.0)]
     return np.vstack([pal[:, :2], buc[:, :2]])
 
 
-def arch_polyline(n=6000):
+def _sided_cusps(UC, ivu, crossbite: bool):
+    """The upper cusp table of one side: in a crossbite the posterior cusps move lingually with their crowns."""
+    if not crossbite:
+        return UC
+    UC = UC.copy()
+    UC[UC[:, 0] >= ivu[3, 0], 1] -= CROSSBITE_SHIFT
+    return UC
+
+
+def arch_polyline(n=6000, anatomy: Anatomy = DESIGN):
     """Points and arc lengths of the x >= 0 half of the lower central-fossa line."""
+    a, b = ARCH_A * anatomy.arch_width, ARCH_B * anatomy.arch_depth
     phi = np.linspace(0.0, np.pi / 2, n // 2)
-    p1 = np.stack([ARCH_A * np.sin(phi), ARCH_Z0 - ARCH_B * (1 - np.cos(phi))], 1)
+    p1 = np.stack([a * np.sin(phi), ARCH_Z0 - b * (1 - np.cos(phi))], 1)
     d = np.array([math.sin(RAMUS_ANGLE), -math.cos(RAMUS_ANGLE)])
     seg = np.linalg.norm(np.diff(p1, axis=0), axis=1).sum()
     t = np.linspace(0.0, S_MAX - seg, n // 2)[1:]
@@ -113,11 +206,11 @@ def arch_polyline(n=6000):
     return P, s
 
 
-def arch_coordinates(x, z):
+def arch_coordinates(x, z, anatomy: Anatomy = DESIGN):
     """``(s, v)`` of points ``(x, z)``: arc length (symmetric, ≥ 0) and outward offset (mm)."""
     from scipy.spatial import cKDTree
 
-    P, S = arch_polyline()
+    P, S = arch_polyline(anatomy=anatomy)
     ax = np.abs(x)
     q = np.stack([ax, z], 1)
     _, i = cKDTree(P).query(q)
@@ -133,9 +226,9 @@ def arch_coordinates(x, z):
     return s, v
 
 
-def arch_point(s, v):
+def arch_point(s, v, anatomy: Anatomy = DESIGN):
     """``(x, z)`` on the x >= 0 side at arc length ``s`` and offset ``v``."""
-    P, S = arch_polyline()
+    P, S = arch_polyline(anatomy=anatomy)
     i = int(np.clip(np.searchsorted(S, s) - 1, 0, len(P) - 2))
     t = (P[i + 1] - P[i]) / np.linalg.norm(P[i + 1] - P[i])
     p = P[i] + (s - S[i]) * t
@@ -189,10 +282,12 @@ def interface(s, v, LC, UC, CT):
 
 
 @njit(cache=True)
-def _crowns(s, v, y, f, g, iv, B, taper, upper):
-    """Union of the crowns (field, < 0 inside) of one jaw at one point."""
+def _crowns(s, v, y, f, g, iv, B, T, taper, upper):
+    """Union of the crowns (field, < 0 inside) of one jaw at one point (``T``: the side's tooth table)."""
     d = 1e9
     for t in range(iv.shape[0]):
+        if T[t, 1] == 0.0:
+            continue
         s0 = iv[t, 0]
         s1 = iv[t, 1]
         if s < s0 - 3.0 or s > s1 + 3.0:
@@ -200,12 +295,12 @@ def _crowns(s, v, y, f, g, iv, B, taper, upper):
         sc = 0.5 * (s0 + s1)
         hw = 0.5 * (s1 - s0) - INTERPROXIMAL
         if upper:
-            vc = UPPER_SHIFT
+            vc = UPPER_SHIFT + T[t, 0]
             occ = min(max((3.0 - y) / 4.5, 0.0), 1.0)  # 0 at the height of contour, 1 at the edge
             top = y - 9.5  # cervical end, inside the alveolar bone
             cut = (f + g) - y  # upper crowns lie above f + g
         else:
-            vc = 0.0
+            vc = T[t, 0]
             occ = min(max((y + 3.0) / 4.5, 0.0), 1.0)
             top = -9.5 - y
             cut = y - f
@@ -256,9 +351,10 @@ def _ellipsoid(px, py, pz, ax, ay, az):
 
 
 @njit(cache=True)
-def mandible_field(x, y, z, s, v, LC, UC, CT, ivl, cond_c):
-    f, g = interface(s, v, LC, UC, CT)
-    d = _crowns(s, v, y, f, g, ivl, LOWER_B, TAPER, False)
+def mandible_field(x, y, z, s, v, LC, UC2, CT2, ivl, B, T2, SH, cond_c):
+    side = 0 if x >= 0.0 else 1
+    f, g = interface(s, v, LC, UC2[side], CT2[side])
+    d = _crowns(s, v, y, f, g, ivl, B, T2[side], TAPER, False)
     # alveolar body along the arch, wider posteriorly
     hv = 5.2 + 2.0 * min(max((s - 20.0) / 35.0, 0.0), 1.0)
     body = _round_box2(v, y + 20.0, hv, 13.5, 4.5)
@@ -275,12 +371,14 @@ def mandible_field(x, y, z, s, v, LC, UC, CT, ivl, cond_c):
 
 
 @njit(cache=True)
-def maxilla_field(x, y, z, s, v, LC, UC, CT, ivu, cond_c):
-    f, g = interface(s, v, LC, UC, CT)
-    d = _crowns(s, v, y, f, g, ivu, UPPER_B, TAPER, True)
-    # alveolar process over the crowns, palate and basal body inside the arch
+def maxilla_field(x, y, z, s, v, LC, UC2, CT2, ivu, B, T2, SH, cond_c):
+    side = 0 if x >= 0.0 else 1
+    f, g = interface(s, v, LC, UC2[side], CT2[side])
+    d = _crowns(s, v, y, f, g, ivu, B, T2[side], TAPER, True)
+    # alveolar process over the crowns (following a crossbite's lingual step from the canine
+    # to the first premolar), palate and basal body inside the arch
     hv = 5.0 + 2.0 * min(max((s - 20.0) / 35.0, 0.0), 1.0)
-    alv = _round_box2(v - UPPER_SHIFT, y - 16.0, hv, 7.5, 3.5)
+    alv = _round_box2(v - (UPPER_SHIFT + SH[side] * min(max((s - SH[2]) / 6.0, 0.0), 1.0)), y - 16.0, hv, 7.5, 3.5)
     inner = _round_box2(v + 10.0, y - 19.0, 16.0, 4.5, 3.0)  # palate: the inside of the U
     base = _smin(alv, inner, 4.0)
     base = max(base, s - 62.0)
@@ -300,16 +398,16 @@ def maxilla_field(x, y, z, s, v, LC, UC, CT, ivu, cond_c):
 
 
 @njit(cache=True, parallel=True)
-def _fill(which, xs, ys, zs, S, V, LC, UC, CT, iv, cond_c, out):
+def _fill(which, xs, ys, zs, S, V, LC, UC2, CT2, iv, B, T2, SH, cond_c, out):
     for i in prange(xs.shape[0]):
         for k in range(zs.shape[0]):
             s = S[i, k]
             v = V[i, k]
             for j in range(ys.shape[0]):
                 if which == 0:
-                    out[i, j, k] = mandible_field(xs[i], ys[j], zs[k], s, v, LC, UC, CT, iv, cond_c)
+                    out[i, j, k] = mandible_field(xs[i], ys[j], zs[k], s, v, LC, UC2, CT2, iv, B, T2, SH, cond_c)
                 else:
-                    out[i, j, k] = maxilla_field(xs[i], ys[j], zs[k], s, v, LC, UC, CT, iv, cond_c)
+                    out[i, j, k] = maxilla_field(xs[i], ys[j], zs[k], s, v, LC, UC2, CT2, iv, B, T2, SH, cond_c)
 
 
 # --- generation ---------------------------------------------------------------------------
@@ -317,15 +415,24 @@ def _fill(which, xs, ys, zs, S, V, LC, UC, CT, iv, cond_c, out):
 DEFAULT_SPACING = 0.5  # mm: ~100k vertices per jaw (97k maxilla, 116k mandible)
 
 
-def design():
-    """Everything the fields need: cusp tables, contacts, crown intervals, condyle centre (mm)."""
-    ivl, ivu = tooth_layout()
+def design(anatomy: Anatomy = DESIGN):
+    """Everything the fields need: cusp tables (the upper and the contacts per side), crown
+    intervals, tooth tables, crown sizes, condyle centre (mm)."""
+    ivl, ivu = tooth_layout(anatomy)
     LC = _cusp_table(LOWER_CUSPS, ivl)
     UC = _cusp_table(UPPER_CUSPS, ivu)
-    CT = contact_table(LC, UC)
-    cx, cz = arch_point(CONDYLE_S, 0.0)
+    cross = [anatomy.crossbite == side for side in SIDES]
+    UC2 = np.stack([_sided_cusps(UC, ivu, c) for c in cross])
+    CTs = [contact_table(LC, UC, c) for c in cross]
+    m = max(len(c) for c in CTs)  # pad with far-away points (no effect on the clearance)
+    CT2 = np.stack([np.vstack([c, np.full((m - len(c), 2), 1e6)]) for c in CTs])
+    cx, cz = arch_point(CONDYLE_S, 0.0, anatomy)
     cond = np.array([cx, CONDYLE_Y, cz])
-    return {"LC": LC, "UC": UC, "CT": CT, "ivl": ivl, "ivu": ivu, "condyle": cond}
+    # the maxillary alveolar process's lingual step in a crossbite: amount per side, where it starts
+    SH = np.array([-CROSSBITE_SHIFT * c for c in cross] + [ivu[3, 0] - 6.0])
+    return {"LC": LC, "UC": UC, "UC2": UC2, "CT": CTs, "CT2": CT2, "ivl": ivl, "ivu": ivu, "condyle": cond,
+            "Bl": LOWER_B * anatomy.tooth_size, "Bu": UPPER_B * anatomy.tooth_size, "SH": SH,
+            "Tl": _tooth_table(anatomy, "mandible"), "Tu": _tooth_table(anatomy, "maxilla"), "anatomy": anatomy}
 
 
 def _grid(lo, hi, h):
@@ -339,11 +446,11 @@ def _polygonise(which, D, xs, ys, zs, h):
 
     field = np.empty((len(xs), len(ys), len(zs)))
     X, Z = np.meshgrid(xs, zs, indexing="ij")
-    S, V = arch_coordinates(X.ravel(), Z.ravel())
+    S, V = arch_coordinates(X.ravel(), Z.ravel(), D["anatomy"])
     S = S.reshape(X.shape)
     V = V.reshape(X.shape)
-    iv = D["ivl"] if which == 0 else D["ivu"]
-    _fill(which, xs, ys, zs, S, V, D["LC"], D["UC"], D["CT"], iv, D["condyle"], field)
+    iv, B, T = (D["ivl"], D["Bl"], D["Tl"]) if which == 0 else (D["ivu"], D["Bu"], D["Tu"])
+    _fill(which, xs, ys, zs, S, V, D["LC"], D["UC2"], D["CT2"], iv, B, T, D["SH"], D["condyle"], field)
     # keep the zero level off the lattice points: a vertex on a lattice point makes slivers
     # that collapse when written to file (|f| ~ mm, so this moves the surface < 1e-4 mm)
     field[np.abs(field) < 1e-4] = 1e-4
@@ -366,8 +473,8 @@ def _clean_metres(m):
     load_mesh((m.vertices, m.faces))  # raises MeshError if the file would not be a clean solid
 
 
-def generate(spacing: float = DEFAULT_SPACING):
-    """The two jaws in the design (centric occlusion) pose, in metres.
+def generate(spacing: float = DEFAULT_SPACING, anatomy: Anatomy = DESIGN):
+    """The two jaws of ``anatomy`` (default: the bundled pair) in the design (centric occlusion) pose, in metres.
 
     Returns
     -------
@@ -375,7 +482,7 @@ def generate(spacing: float = DEFAULT_SPACING):
     meta : dict
         ``metadata(spacing)``: ``hinge`` (condyle centre, m), designed contact points (m), ...
     """
-    D = design()
+    D = design(anatomy)
     c = D["condyle"]
     xmax = c[0] + CONDYLE_AXES[0] + 8.0
     zlo = c[2] - CONDYLE_AXES[2] - 14.0
@@ -387,17 +494,28 @@ def generate(spacing: float = DEFAULT_SPACING):
     return maxi, mand, metadata(spacing, D)
 
 
-def metadata(spacing: float = DEFAULT_SPACING, D: dict | None = None) -> dict:
+def _has_crown(T, iv, s) -> bool:
+    """Whether a crown of the side's tooth table ``T`` covers arc length ``s``."""
+    return any(T[t, 1] > 0.0 and iv[t, 0] <= s <= iv[t, 1] for t in range(len(iv)))
+
+
+def metadata(spacing: float = DEFAULT_SPACING, D: dict | None = None, anatomy: Anatomy = DESIGN) -> dict:
     """What the design says about the jaws without polygonising them: units, frame, hinge,
     condyles and the designed contact points (both sides, on the occlusal interface)."""
-    D = design() if D is None else D
+    D = design(anatomy) if D is None else D
     c = D["condyle"]
     pts = []
-    for s, v in D["CT"]:
-        f, _ = interface(s, v, D["LC"], D["UC"], D["CT"])
-        x, z = arch_point(s, v)
-        pts += [[x, f, z], [-x, f, z]]
-    return {
+    for side in (0, 1):
+        for s, v in D["CT"][side]:
+            f, _ = interface(s, v, D["LC"], D["UC2"][side], D["CT2"][side])
+            if not all(_has_crown(D[T][side], D[iv], s) for T, iv in (("Tl", "ivl"), ("Tu", "ivu"))):
+                continue  # its tooth is missing
+            x, z = arch_point(s, v, D["anatomy"])
+            pts.append([x if side == 0 else -x, f, z])
+    if D["anatomy"] == DESIGN:  # the bundled pair's order: each contact with its mirror image
+        n = len(pts) // 2
+        pts = [p for i in range(n) for p in (pts[i], pts[n + i])]
+    meta = {
         "units": "m",
         "frame": "+y up (superior), +z anterior, x left-right; maxilla fixed",
         "hinge": (np.array([0.0, c[1], c[2]]) * 1e-3).tolist(),
@@ -406,3 +524,7 @@ def metadata(spacing: float = DEFAULT_SPACING, D: dict | None = None) -> dict:
         "spacing_mm": spacing,
         "teeth_per_jaw": 2 * len(KINDS),
     }
+    if D["anatomy"] != DESIGN:
+        meta["anatomy"] = D["anatomy"].as_dict()
+        meta["teeth_per_jaw"] = {j: int(D[k][:, :, 1].sum()) for j, k in (("maxilla", "Tu"), ("mandible", "Tl"))}
+    return meta

@@ -184,7 +184,7 @@ def arch_frames(model, gmx, gmd) -> dict:
         V, F = mesh_of(model, g)
         world[g] = (V @ P[:3, :3].T + P[:3, 3], F)
     (Vx, Fx), (Vd, Fd) = world[gmx], world[gmd]
-    return {"maxilla": arch_frame(occlusal_points(Vx, Vd, Fd), UP), "mandible": arch_frame(occlusal_points(Vd, Vx, Fx), UP)}
+    return {"maxilla": arch_frame(occlusal_points(Vx, Vd, Fd, up=UP), UP), "mandible": arch_frame(occlusal_points(Vd, Vx, Fx, up=UP), UP)}
 
 
 def pose_error(model, gmd, pos, quat, ref_pos, ref_quat, sample: np.ndarray) -> dict:
@@ -454,6 +454,18 @@ def write_outputs(res: dict, out_dir, picture: bool = True) -> list[str]:
     return written
 
 
+def write_contact_map(res: dict, out_dir) -> tuple[dict, list[str]]:
+    """The contact map of a search's best candidate (``contactmap.contact_map``) and its files in ``out_dir``."""
+    from . import contactmap
+    from .arch import ArchFrame
+
+    best = res["candidates"][0]
+    model, handle = res["_model"], res["_handle"]
+    frames = {k: ArchFrame.from_dict(v) for k, v in res["arches"].items()}
+    cmap = contactmap.contact_map(model, handle, best["pos"], best["quat"], frames=frames)
+    return cmap, contactmap.write(cmap, frames, out_dir)
+
+
 def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, threads=None, seed=0, top=5,
          out="out/occlusion", progress=True, pair: dict | None = None, contact_map: bool = True) -> int:
     res = search(scene, data=data, starts=starts, translation=translation, rotation_deg=rotation_deg,
@@ -469,12 +481,8 @@ def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, t
                   f"{', '.join(c['regions']) or 'no region'}  vs reference: {e['rms_mm']:.3f} mm RMS, {e['rotation_deg']:.3f}°{pol}")
         written = write_outputs(res, out)
         if contact_map and res["candidates"]:
-            from . import contactmap
-
-            best = res["candidates"][0]
-            model, handle = res["_model"], res["_handle"]
-            cmap = contactmap.contact_map(model, handle, best["pos"], best["quat"])
-            written += contactmap.write(cmap, arch_frames(model, handle.geoms["maxilla"], handle.geoms["mandible"]), out)
+            cmap, files = write_contact_map(res, out)
+            written += files
             for name in ("maxilla", "mandible"):
                 rows = ", ".join(f"{r['region']} {r['contact_area_mm2']:.1f} mm² (closest {r['closest_mm']:.3f} mm)"
                                  for r in cmap[name].regions if r["closest_mm"] < 0.4)

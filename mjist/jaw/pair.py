@@ -14,20 +14,38 @@ from . import BUNDLED
 UP, ANTERIOR = 1, 2
 
 
+CONDYLE_CAP = 5e-3  # m: the top of each condyle fitted; deeper reaches the neck, shallower is too flat to fit
+
+
+def _condyle_centre(top: np.ndarray, highest: float) -> np.ndarray:
+    """Centre of a condylar head from the vertices of its top cap: a circle fitted in the sagittal
+    (up, anterior) plane, at the cap's mean lateral position; the cap's mean when the fit is not a
+    condyle-sized circle below the top."""
+    A = np.c_[2.0 * top[:, UP], 2.0 * top[:, ANTERIOR], np.ones(len(top))]
+    (cy, cz, c), *_ = np.linalg.lstsq(A, (top[:, [UP, ANTERIOR]] ** 2).sum(axis=1), rcond=None)
+    r = np.sqrt(max(c + cy * cy + cz * cz, 0.0))
+    if len(top) < 10 or not (2e-3 <= r <= 15e-3) or not (0.0 < highest - cy <= r + 1e-3):
+        return top.mean(axis=0)
+    return np.array([top[:, 0].mean(), cy, cz])
+
+
 def hinge_point(mandible_vertices) -> np.ndarray:
-    """Centre of the two condyles: the highest points of the posterior quarter of the mandible.
+    """Centre of the condylar axis: midway between the centres of the two condylar heads (the
+    highest parts of the posterior quarter of the mandible, ``_condyle_centre``).
 
     The mandible rotates about the left-right (x) axis through this point when it opens.
     """
     V = np.asarray(mandible_vertices, dtype=np.float64)
     z0, z1 = V[:, ANTERIOR].min(), V[:, ANTERIOR].max()
     post = V[V[:, ANTERIOR] < z0 + 0.25 * (z1 - z0)]
-    top = post[post[:, UP] > post[:, UP].max() - 0.003]
     mid = 0.5 * (V[:, 0].min() + V[:, 0].max())
-    left, right = top[top[:, 0] < mid], top[top[:, 0] >= mid]
-    if len(left) == 0 or len(right) == 0:
-        raise ValueError("no condyles found: is the mandible in metres with +y up and +z anterior?")
-    return 0.5 * (left.mean(axis=0) + right.mean(axis=0))
+    centres = []
+    for side in (post[post[:, 0] < mid], post[post[:, 0] >= mid]):
+        if len(side) == 0:
+            raise ValueError("no condyles found: is the mandible in metres with +y up and +z anterior?")
+        highest = side[:, UP].max()
+        centres.append(_condyle_centre(side[side[:, UP] > highest - CONDYLE_CAP], highest))
+    return 0.5 * (centres[0] + centres[1])
 
 
 def hinge_pose(theta, hinge, lateral=0.0, protrusion=0.0, vertical=0.0) -> np.ndarray:
@@ -180,7 +198,7 @@ def _orientation(mx, md, units, up, notes: list):
     up_axis, ev_up = orient.detect_up(bx, bd, up)
     u = np.asarray(orient.AXES[up_axis])
     touch = orient.touch_offset(bx, bd, u)
-    pts = arch.occlusal_points(Vx, Vd + touch * u, md.faces)
+    pts = arch.occlusal_points(Vx, Vd + touch * u, md.faces, up=u)
     fx = arch.arch_frame(pts, u)
     anterior = orient.snap(fx.anterior, up_axis)
     detected = {}
@@ -254,8 +272,9 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
                     "hinge": o.apply(np.array(j["hinge"])[None], "mandible")[0]}
     pose = info["mandible_pose"]
     Vd_occ = md.vertices @ pose[:3, :3].T + pose[:3, 3]
-    frames = {"maxilla": arch.arch_frame(arch.occlusal_points(mx.vertices, Vd_occ, md.faces), (0.0, 1.0, 0.0)),
-              "mandible": arch.arch_frame(arch.occlusal_points(Vd_occ, mx.vertices, mx.faces), (0.0, 1.0, 0.0))}
+    up_j = (0.0, 1.0, 0.0)
+    frames = {"maxilla": arch.arch_frame(arch.occlusal_points(mx.vertices, Vd_occ, md.faces, up=up_j), up_j),
+              "mandible": arch.arch_frame(arch.occlusal_points(Vd_occ, mx.vertices, mx.faces, up=up_j), up_j)}
     if up == "auto":  # the file names say which jaw is upper; a maxilla with rami is a mandible
         fx = frames["maxilla"]
         below = -float(np.min((mx.vertices - fx.origin) @ fx.up))

@@ -329,6 +329,7 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
     path.write_text(xml)
     summary = {"scene": str(path), "kind": kind, "meshes": files, "hinge": np.asarray(info["hinge"]).tolist(),
                "hinge_source": info["hinge_source"], "occlusion_source": info["source"], "teeth_only": info["teeth_only"],
+               "mandible_pose": np.asarray(info["mandible_pose"]).tolist(),
                "orientation": info["orientation"].as_dict(), "arches": {k: f.as_dict() for k, f in info["arches"].items()},
                "notes": info["notes"]}
     (path.parent / "pair.json").write_text(json.dumps(summary, indent=1))

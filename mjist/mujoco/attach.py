@@ -103,11 +103,31 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     return handle
 
 
+def _build_params(cfg: Config) -> dict:
+    """``mjist.build`` arguments of a model's trees (with the mesh, the tree cache's key)."""
+    return {"max_error": cfg.max_error, "branching": int(cfg.branching), "seed": int(cfg.seed)}
+
+
+def geom_tree(model: mujoco.MjModel, geom: str, *, cache_dir=None, progress: bool = False):
+    """The tree ``attach`` gives geom ``geom`` of ``model``, loaded from the cache or built into it.
+
+    Lets a tree be built ahead, e.g. in another process (``mjist.cohort`` builds a pair's two trees
+    in parallel); a later ``attach`` with the same ``cache_dir`` finds it. Returns ``(tree, hit)``.
+    """
+    from ..cache import cached_tree
+
+    g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, geom)
+    if g < 0:
+        raise ConfigError(f"geom_tree: the model has no geom named {geom!r}")
+    V, F = mesh_of(model, g)
+    return cached_tree(V, F, _build_params(read_config(model)), folder=cache_dir, progress=progress, name=geom)
+
+
 def _load_trees(model, cfg: Config, handle: Handle, used: list[int], trees, cache_dir, progress) -> dict[int, float]:
     """Trees of the managed geoms into ``handle`` (given, cached or built); each geom's mean surface gap."""
     from ..cache import cached_tree
 
-    params = {"max_error": cfg.max_error, "branching": int(cfg.branching), "seed": int(cfg.seed)}
+    params = _build_params(cfg)
     trees = dict(trees or {})
     t0 = time.perf_counter()
     gap = {}

@@ -123,3 +123,45 @@ def test_load_pair_from_a_folder_without_pose_finds_first_touch(tmp_path):
     assert info["hinge"][1] > 0.02  # condyles found above the occlusal plane
     with pytest.raises(FileNotFoundError, match="maxilla"):
         jaw.load_pair(tmp_path / "nowhere")
+
+
+@pytest.mark.parametrize("anatomy", [
+    jawmodel.Anatomy(arch_width=1.08, arch_depth=0.92, tooth_size=1.06, class_shift=3.0),
+    jawmodel.Anatomy(arch_width=0.92, tooth_size=0.94, crowding=1.2, class_shift=-3.0, crossbite="left",
+                     missing=(("mandible", "right", 5),)),
+], ids=["wide-class-II", "narrow-class-III-crossbite-missing"])
+def test_other_patients_touch_in_their_design_pose(anatomy):
+    """Every anatomy keeps the design's guarantee: closed jaws that touch on both sides and do not
+    overlap in the design pose (up to the lattice's discretisation, ~0.1 mm at 1 mm spacing)."""
+    maxilla, mandible, meta = jawmodel.generate(spacing=1.0, anatomy=anatomy)
+    for m in (maxilla, mandible):
+        mjist.load_mesh((m.vertices, m.faces))
+    bx = jaw.coal_bvh(maxilla.vertices, maxilla.faces)
+    bd = jaw.coal_bvh(mandible.vertices, mandible.faces)
+    assert abs(jaw.touching_offset(bx, bd)) <= 1.5e-4
+    P = np.eye(4)
+    P[1, 3] = -1e-3
+    assert jaw.coal_distance(bx, np.eye(4), bd, P) > 3e-4
+    C = np.array(meta["designed_contacts"])
+    assert (C[:, 0] > 0).sum() >= 6 and (C[:, 0] < 0).sum() >= 6
+    for m in (maxilla, mandible):
+        _, dist, _ = trimesh.proximity.closest_point(m, C)
+        assert np.median(dist) <= 2e-4
+    ivl, _ = jawmodel.tooth_layout(anatomy)
+    top = mandible.vertices[mandible.vertices[:, 1] > -0.003]  # crowns above the gingiva
+    for t in range(len(jawmodel.KINDS)):  # a crown stands at each tooth's place, except a missing one
+        x, z = jawmodel.arch_point(ivl[t].mean(), 0.0, anatomy) * 1e-3
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            near = np.hypot(top[:, 0] - sign * x, top[:, 2] - z) < 2e-3
+            assert near.any() != (("mandible", side, t) in anatomy.missing), (side, t)
+    if anatomy.crossbite == "left":  # the lower buccal cusps stand outside the upper crowns on that side only
+        def outermost(V, lo, hi, side):  # largest outward offset from the arch line of second-premolar crown points (mm)
+            V = V[(V[:, 1] > lo) & (V[:, 1] < hi) & (np.sign(V[:, 0]) == side)] * 1e3
+            s_, v_ = jawmodel.arch_coordinates(V[:, 0], V[:, 2], anatomy)
+            return v_[(s_ > ivl[4, 0] + 1) & (s_ < ivl[4, 1] - 1)].max()
+
+        for side, crossed in ((1.0, True), (-1.0, False)):
+            upper, lower = outermost(maxilla.vertices, 0.0005, 0.004, side), outermost(mandible.vertices, -0.004, 0.0005, side)
+            assert (lower > upper) == crossed, (side, upper, lower)
+    with pytest.raises(ValueError, match="crossbite"):
+        jawmodel.Anatomy(crossbite="both")

@@ -1,0 +1,160 @@
+"""Where a cohort's stages run: in this process one patient at a time, or as Ray tasks.
+
+Both take a patient and hand back its finished result; the runner does not know which it has.
+On Ray a patient is a small graph: ``prepare`` → two ``tree`` tasks (one per jaw, in parallel)
+→ ``search``, each task one CPU and retried when its worker dies (``RETRIES``). Ray is
+imported here only, when a Ray backend is made.
+"""
+from __future__ import annotations
+
+import socket
+import time
+
+from . import stages
+
+RETRIES = 2  # a task whose worker dies (killed, out of memory) runs again this many times
+INSTALL = ("mjist cohort runs its patients on Ray, which is not installed: pip install 'mjist[cluster]' "
+           "(or run on this machine one patient at a time with --serial)")
+
+
+def run_patient(patient, out_dir: str, settings: dict) -> dict:
+    """All stages of one patient in this process (the serial backend's unit of work)."""
+    prep = stages.prepare(patient, out_dir, settings)
+    tmx = stages.tree(prep, "maxilla", settings)
+    tmd = stages.tree(prep, "mandible", settings)
+    return _combine(prep, tmx, tmd, stages.search(patient, prep, tmx, tmd, out_dir, settings))
+
+
+def _combine(prep, tmx, tmd, final) -> dict:
+    """The stage results of one patient as its result record (status, row, times, trees)."""
+    res = {"status": final["status"], "worker": socket.gethostname()}
+    if final["status"] != "ok":
+        res.update(stage=final["stage"], error=final["error"], traceback=final.get("traceback", ""))
+    else:
+        res["row"] = final["row"]
+    times = {}
+    if prep.get("status") == "ok":
+        times["prepare_s"] = prep["seconds"]
+        res["notes"] = prep["pair"].get("notes", [])
+    for name, t in (("maxilla", tmx), ("mandible", tmd)):
+        if t.get("status") == "ok" and "cache_hit" in t:
+            times[f"tree_{name}_s"] = t["seconds"]
+            res.setdefault("trees", {})[name] = {k: t[k] for k in ("cache_hit", "error_bound_mm", "leaves")}
+    if final["status"] == "ok":
+        s = final["seconds"]
+        times.update(search_s=s["search"], contact_map_s=s["contact_map"], outputs_s=s["outputs"])
+    times["work_s"] = sum(v for k, v in times.items())
+    res["times"] = times
+    return res
+
+
+class Serial:
+    """One patient at a time in this process."""
+
+    name = "serial"
+    slots = 1
+
+    def __init__(self, out_dir: str, settings: dict):
+        self.out_dir, self.settings = out_dir, settings
+        self._queue = {}
+
+    def submit(self, patient):
+        self._queue[patient.id] = patient
+        return patient.id
+
+    def wait(self, handles, timeout: float):
+        h = handles[0]
+        return [(h, run_patient(self._queue.pop(h), self.out_dir, self.settings))]
+
+    def map(self, fn, items):
+        return [fn(*a) for a in items]
+
+    def close(self):
+        pass
+
+
+# Ray tasks: module-level functions, so workers import them by reference from the installed mjist
+
+
+def _prepare_task(patient, out_dir, settings):
+    stages.crash_point(patient.id, "prepare")
+    return stages.prepare(patient, out_dir, settings)
+
+
+def _tree_task(patient, prep, geom, settings):
+    stages.crash_point(patient.id, f"tree-{geom}")
+    return stages.tree(prep, geom, settings)
+
+
+def _search_task(patient, prep, tmx, tmd, out_dir, settings):
+    stages.crash_point(patient.id, "search")
+    final = stages.search(patient, prep, tmx, tmd, out_dir, settings)
+    return _combine(prep, tmx, tmd, final)
+
+
+class Ray:
+    """Patients as Ray task graphs on a local Ray (``workers`` CPUs) or a cluster (``address``)."""
+
+    name = "ray"
+
+    def __init__(self, out_dir: str, settings: dict, *, workers: int | None = None, address: str | None = None):
+        try:
+            import ray
+        except ImportError as exc:
+            raise RuntimeError(INSTALL) from exc
+        self.ray = ray
+        self._own = not ray.is_initialized()
+        if self._own:
+            import os
+
+            # mjist's and numba's settings (MJIST_CACHE, NUMBA_CACHE_DIR, MUJOCO_GL, ...) reach every worker
+            env = {k: v for k, v in os.environ.items() if k.startswith(("MJIST_", "NUMBA_", "MUJOCO_GL"))}
+            ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
+                     log_to_driver=False, logging_level="ERROR", runtime_env={"env_vars": env} if env else None)
+        self.slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        opts = {"num_cpus": 1, "max_retries": RETRIES}
+        self._prepare = ray.remote(**opts)(_prepare_task)
+        self._tree = ray.remote(**opts)(_tree_task)
+        self._search = ray.remote(**opts)(_search_task)
+        self.out_dir, self.settings = out_dir, settings
+        self._refs = {}
+
+    def submit(self, patient):
+        prep = self._prepare.remote(patient, self.out_dir, self.settings)
+        tmx = self._tree.remote(patient, prep, "maxilla", self.settings)
+        tmd = self._tree.remote(patient, prep, "mandible", self.settings)
+        ref = self._search.remote(patient, prep, tmx, tmd, self.out_dir, self.settings)
+        self._refs[ref] = patient.id
+        return ref
+
+    def wait(self, handles, timeout: float):
+        done, _ = self.ray.wait(list(handles), num_returns=1, timeout=timeout)
+        out = []
+        for ref in done:
+            self._refs.pop(ref, None)
+            try:
+                out.append((ref, self.ray.get(ref)))
+            except Exception as exc:  # the worker died more than RETRIES times, or Ray itself failed
+                out.append((ref, {"status": "error", "stage": "worker", "worker": "",
+                                  "error": f"{type(exc).__name__}: the task failed {RETRIES + 1} times "
+                                           f"({str(exc).strip().splitlines()[0][:200] if str(exc).strip() else 'no message'})",
+                                  "times": {}}))
+        return out
+
+    def map(self, fn, items):
+        task = self.ray.remote(num_cpus=1, max_retries=RETRIES)(fn)
+        return self.ray.get([task.remote(*a) for a in items])
+
+    def close(self):
+        if self._own and self.ray.is_initialized():
+            self.ray.shutdown()
+
+
+def make(kind: str, out_dir: str, settings: dict, *, workers=None, address=None):
+    """``Serial`` or ``Ray`` (``RuntimeError`` with the install command when Ray is missing)."""
+    if kind == "serial":
+        return Serial(out_dir, settings)
+    t0 = time.perf_counter()
+    b = Ray(out_dir, settings, workers=workers, address=address)
+    b.startup_s = time.perf_counter() - t0
+    return b

@@ -1,0 +1,125 @@
+"""Cohorts on local Ray: error rows, resuming, a killed worker, results independent of workers.
+
+Small synthetic patients (1.5 mm polygonisation, 1 mm trees, 4 search starts) keep a patient to
+seconds; the accuracy of the search is measured by ``scripts/bench_cohort.py``, not here.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from mjist.cohort import discover, report, run, synthetic
+
+pytest.importorskip("ray")
+
+FAST = {"max_error": 1e-3, "starts": 4, "seconds": 0.2, "picture": False}
+GOOD = ("synthetic-0000", "synthetic-0003")
+
+
+@pytest.fixture(scope="module")
+def cohort_input(tmp_path_factory):
+    """Two synthetic patients and one whose maxilla file is not a mesh."""
+    folder = tmp_path_factory.mktemp("input")
+    for name in GOOD:
+        synthetic.write_patient(folder / name, synthetic.anatomy(0, int(name[-4:])), spacing=1.5)
+    bad = folder / "broken"
+    shutil.copytree(folder / GOOD[0], bad)
+    (bad / "maxilla.obj").write_text("this is not a mesh\n")
+    (bad / synthetic.DESIGN_FILE).unlink()
+    return folder
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("trees"))
+
+
+def _rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _without_times(rows):
+    return [{k: v for k, v in r.items() if k not in report.TIME_COLUMNS} for r in rows]
+
+
+@pytest.fixture(scope="module")
+def two_workers(cohort_input, cache, tmp_path_factory):
+    out = tmp_path_factory.mktemp("two")
+    return out, run(cohort_input, out, workers=2, progress=False, cache=cache, **FAST)
+
+
+def test_bad_patient_is_an_error_row_and_the_others_finish(two_workers):
+    out, s = two_workers
+    assert (s["patients"], s["done"], s["failed"], s["backend"]) == (3, 2, 1, "ray")
+    rows = {r["patient"]: r for r in _rows(out / "cohort.csv")}
+    assert rows["broken"]["status"] == "error" and rows["broken"]["error_stage"] == "load"
+    assert "broken" in rows["broken"]["error"] or "maxilla" in rows["broken"]["error"]
+    for name in GOOD:
+        r = rows[name]
+        assert r["status"] == "ok" and r["both_sides"] == "True" and float(r["design_max_mm"]) < 2.0
+        for f in ("occlusion.json", "landscape.png", "contact_map.json", "contact_map_maxilla.png", "result.json"):
+            assert (out / "patients" / name / f).exists(), f
+    assert (out / "cohort.png").exists()
+
+
+def test_rerun_does_nothing(two_workers, cohort_input, cache):
+    out, _ = two_workers
+    before = (out / "cohort.csv").read_text()
+    s = run(cohort_input, out, serial=True, progress=False, cache=cache, **FAST)
+    assert (s["ran"], s["skipped"]) == (0, 3)
+    assert (out / "cohort.csv").read_text() == before
+
+
+def test_half_written_patient_is_not_taken_as_done(two_workers, cohort_input, cache, tmp_path):
+    out, _ = two_workers
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    (copy / "patients" / GOOD[1] / "result.json").write_text('{"status": "ok", "patient": "synthetic-0003", "ke')
+    s = run(cohort_input, copy, serial=True, progress=False, cache=cache, **FAST)
+    assert s["ran"] == 1 and s["done"] == 2
+    assert _without_times(_rows(copy / "cohort.csv")) == _without_times(_rows(out / "cohort.csv"))
+
+
+def test_killed_worker_is_retried_and_one_worker_gives_the_same_rows(two_workers, cohort_input, cache, tmp_path, monkeypatch):
+    out, _ = two_workers
+    flags = tmp_path / "crash"
+    flags.mkdir()
+    (flags / f"{GOOD[0]}.search").touch()
+    (flags / f"{GOOD[1]}.tree-maxilla").touch()
+    monkeypatch.setenv("MJIST_COHORT_CRASH_ONCE", str(flags))
+    s = run(cohort_input, tmp_path / "one", workers=1, progress=False, cache=cache, **FAST)
+    assert not list(flags.iterdir()), "the injected crashes did not happen"
+    assert (s["done"], s["failed"]) == (2, 1)
+    assert _without_times(_rows(tmp_path / "one" / "cohort.csv")) == _without_times(_rows(out / "cohort.csv"))
+
+
+def test_manifest_gives_per_patient_options(cohort_input, tmp_path):
+    m = tmp_path / "cohort.csv"
+    m.write_text("patient,folder,units,up\n"
+                 f"a,{cohort_input / GOOD[0]},m,+y\n"
+                 f"b,{cohort_input / GOOD[1]},,\n")
+    a, b = discover(m)
+    assert (a.id, a.units, a.up, b.units) == ("a", "m", "+y", "auto")
+    m.write_text("folder\nx\n")
+    with pytest.raises(ValueError, match="patient"):
+        discover(m)
+
+
+def test_without_ray_the_command_says_how_to_install_it(tmp_path, monkeypatch):
+    from mjist import cli
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails
+    assert cli.main(["cohort", str(tmp_path), "--out", str(tmp_path / "o"), "-q"]) == 2
+
+
+def test_the_rest_of_mjist_does_not_import_ray():
+    code = ("import sys, mjist, mjist.cli, mjist.cohort, mjist.jaw.occlusion, mjist.jaw.scenes; "
+            "print(json.dumps('ray' in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", "import json; " + code], capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout) is False
