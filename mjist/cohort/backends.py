@@ -109,8 +109,10 @@ class Ray:
 
             # mjist's and numba's settings (MJIST_CACHE, NUMBA_CACHE_DIR, MUJOCO_GL, ...) reach every worker
             env = {k: v for k, v in os.environ.items() if k.startswith(("MJIST_", "NUMBA_", "MUJOCO_GL"))}
+            # a task holds one CPU: numba's threads beyond that would oversubscribe the node
+            env.setdefault("NUMBA_NUM_THREADS", "1")
             ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
-                     log_to_driver=False, logging_level="ERROR", runtime_env={"env_vars": env} if env else None)
+                     log_to_driver=False, logging_level="ERROR", runtime_env={"env_vars": env})
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
         opts = {"num_cpus": 1, "max_retries": RETRIES}
         self._prepare = ray.remote(**opts)(_prepare_task)

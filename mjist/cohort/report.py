@@ -60,6 +60,7 @@ def figure(results: list[dict], path, target_mm: float = 0.2) -> str | None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     fig, ax = plt.subplots(2, 2, figsize=(11, 8))
     err = _floats(rows, "design_max_mm")
@@ -75,10 +76,13 @@ def figure(results: list[dict], path, target_mm: float = 0.2) -> str | None:
     ax[0, 1].set_xlabel("best candidate's score")
     ax[0, 1].set_title("occlusion score")
     for name, colour in (("maxilla", "tab:orange"), ("mandible", "tab:purple")):
-        ax[1, 0].hist(_floats(rows, f"closest_{name}_mm"), bins=15, color=colour, alpha=0.6, label=name)
+        ax[1, 0].hist(_floats(rows, f"contact_area_{name}_mm2"), bins=15, color=colour, alpha=0.6, label=name)
     ax[1, 0].legend()
-    ax[1, 0].set_xlabel("closest distance at the best candidate, contact map estimate (mm)")
-    ax[1, 0].set_title("closest approach")
+    ax[1, 0].set_xlabel("contact area at the best candidate: closer than 0.1 mm (mm²)")
+    ax[1, 0].set_title("occlusal contact area")
+    for a in (ax[0, 0], ax[0, 1], ax[1, 0]):
+        a.yaxis.set_major_locator(MaxNLocator(integer=True))
+        a.set_ylabel("patients")
     stages = ["prepare_s", "tree_maxilla_s", "tree_mandible_s", "search_s", "contact_map_s"]
     means = [sum(_floats(rows, s)) / max(len(_floats(rows, s)), 1) for s in stages]
     ax[1, 1].bar([s[:-2].replace("_", "\n") for s in stages], means, color="tab:gray")

@@ -94,7 +94,7 @@ def _coal_depth(bvh, Pmx, Pmd):
 
 
 def test_press_force_grows_with_coal_penetration(scene):
-    """The mandible pushed straight up into the maxilla in 50 µm steps: |F| and coal's depth both grow."""
+    """The mandible pushed straight up into the maxilla in 0.1 mm steps: |F| and coal's depth both grow."""
     model, h, gmx, gmd, bvh = scene
     d = mujoco.MjData(model)
     h.forget(d)
@@ -103,7 +103,7 @@ def test_press_force_grows_with_coal_penetration(scene):
     q0 = d.qpos[:3].copy()
     Pmx = _maxilla_pose(model, gmx)
     forces_, depths = [], []
-    for s in np.arange(-0.1e-3, 0.5e-3, 0.05e-3):
+    for s in np.arange(-0.1e-3, 0.55e-3, 0.1e-3):
         d.qpos[:3] = q0 + s * up
         d.qvel[:] = 0.0
         d.mocap_pos[0] = d.qpos[:3]  # the handle on the mandible: no coupling force

@@ -45,7 +45,7 @@ def _box_scene(tmp_path, scale=1.0, eps=None, shape=(1.0, 1.0, 1.0)):
 def test_thousands_of_attach_detach_cycles(tmp_path, cache):
     """attach/detach again and again: the table comes back to MuJoCo's, memory stays flat."""
     m = mujoco.MjModel.from_xml_string(_box_scene(tmp_path))
-    n = 3000 if FULL else 300
+    n = 3000 if FULL else 100
     h = A.attach(m, cache_dir=cache)
     h.detach()
     before = _rss_mb()
