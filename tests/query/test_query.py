@@ -7,6 +7,7 @@ from conftest import shared_path
 from scipy.spatial.transform import Rotation
 
 import mjist
+from mjist.geometry.bvh import BVH
 from mjist.query.api import Query
 from mjist.query.traverse import lens_volume
 
@@ -332,7 +333,8 @@ def test_penetration_volume_is_zero_apart_continuous_and_below_the_true_overlap(
     b = mb.copy()
     b.apply_transform(P)
     pts = trimesh.sample.volume_mesh(ma, 200000)
-    inside_b = b.contains(pts)
+    V, F = np.asarray(b.vertices, float), np.asarray(b.faces, np.int64)
+    inside_b = BVH.of_triangles(V, F).contains(pts, V, F)  # ray-cast winding number (trimesh's contains: same, 500× slower)
     overlap = ma.volume * inside_b.mean()  # Monte Carlo estimate of vol(A ∩ B)
     assert 0 < v <= overlap * 1.05
 
