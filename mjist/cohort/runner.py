@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import statistics
 import time
 from collections import deque
 from pathlib import Path
@@ -167,7 +168,7 @@ def _run(patients: list[Patient], out: Path, cfg: dict, backend, retry_failed: b
     designed = [r["row"] for r in rows if r["status"] == "ok" and "within_target" in r.get("row", {})]
     if designed:
         summary["design"] = {"patients": len(designed), "within_target": sum(r["within_target"] == "yes" for r in designed),
-                             "median_max_mm": float(sorted(r["design_max_mm"] for r in designed)[len(designed) // 2]),
+                             "median_max_mm": float(statistics.median(r["design_max_mm"] for r in designed)),
                              "worst_max_mm": max(r["design_max_mm"] for r in designed),
                              "worst_rotation_deg": max(r["design_rotation_deg"] for r in designed)}
     _write_json(out / "summary.json", summary)
