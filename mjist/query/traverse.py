@@ -555,19 +555,24 @@ def multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev, cand, cval
     (rows of ``prev``: group a, group b, leaf a, leaf b), which prunes most of it.
 
     ``cand[k] = (group a, group b, leaf a, leaf b)``, ``cval[k]`` its signed distance
-    (``< margin``). When more groups than ``len(cand)`` are found, the deepest are kept.
-    Returns ``(n_candidates, code, visits)``.
+    (``< margin``). When more groups than ``len(cand)`` are found, the deepest are kept; once
+    the list is full, the shallowest kept value replaces ``margin`` as the threshold, since a
+    group can only enter by beating it. So a large margin (``mj_geomDistance``'s ``distmax``)
+    costs about as much as the margin the deepest ``len(cand)`` groups need, and the result
+    is the same. Returns ``(n_candidates, code, visits)``.
     """
     cap = st.shape[0]
+    cap_cand = cand.shape[0]
     n = 0
     visits = 0
+    thr = margin
     st[0, 0] = 0
     st[0, 1] = 0
     sv[0] = pair_value(Na, Nb, xf, 0, 0)
     sp = 1
     while sp > 0:
         sp -= 1
-        if sv[sp] >= margin:
+        if sv[sp] >= thr:
             continue
         a = st[sp, 0]
         b = st[sp, 1]
@@ -579,10 +584,10 @@ def multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev, cand, cval
             nk = (Na[a, CC] if split_a else Nb[b, CC])
             if sp + nk > cap:
                 return n, STACK_FULL, visits
-            sp = _push_children(Na, Nb, xf, a, b, split_a, margin, st, sv, sp)
+            sp = _push_children(Na, Nb, xf, a, b, split_a, thr, st, sv, sp)
             continue
         # a group: seed with last frame's contact of this group, if any
-        best = margin
+        best = thr
         pair[0] = -1
         pair[1] = -1
         for k in range(n_prev):
@@ -602,6 +607,10 @@ def multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev, cand, cval
         if pair[0] < 0:
             continue
         n = _keep_candidate(cand, cval, n, a, b, pair, best)
+        if n == cap_cand:
+            thr = cval[0]
+            for i in range(1, cap_cand):
+                thr = max(thr, cval[i])
     return n, OK, visits
 
 

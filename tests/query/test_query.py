@@ -252,6 +252,35 @@ def test_multipoint_reuse_matches_a_fresh_query_and_is_deterministic():
         assert np.array_equal(a.positions, b.positions)
 
 
+@pytest.mark.parametrize("margin", [0.05, 0.5, 10.0])
+def test_multipoint_full_pool_keeps_exactly_the_deepest_groups(margin):
+    """Once the candidate list is full its shallowest value becomes the threshold (what makes a
+    large margin, e.g. mj_geomDistance's distmax, cheap): the groups kept must be exactly the
+    deepest of all the groups a list without limit finds."""
+    from mjist.query import traverse as tv
+
+    _, ta, _ = shape("torus")
+    _, tb, _ = shape("bumpy")
+    q = Query(ta, tb)
+    rng = np.random.default_rng(5)
+    for _ in range(12):
+        xf = np.zeros(12)
+        assert tv.relative_pose(np.eye(4), random_pose(rng, 0.6), xf)
+        found = []
+        for size in (1 << 16, 6):
+            st = np.zeros((tv.stack_size(q.Na, q.Nb), 2), np.int64)
+            sv = np.zeros(len(st))
+            cand, cval = np.zeros((size, 4), np.int64), np.zeros(size)
+            n, code, visits = tv.multipoint(q.Na, q.Nb, xf, st, sv, 3, margin, np.zeros((1, 4), np.int64), 0, cand, cval,
+                                            np.zeros(2, np.int64))
+            assert code == tv.OK and n < 1 << 16
+            order = np.argsort(cval[:n], kind="stable")
+            found.append((cand[:n][order], cval[:n][order], visits))
+        (c_all, v_all, visits_all), (c_six, v_six, visits_six) = found
+        assert np.array_equal(c_six, c_all[:6]) and np.array_equal(v_six, v_all[:6])
+        assert visits_six <= visits_all
+
+
 def test_penetration_volume_is_exact_for_two_spheres_and_continuous():
     a = mjist.sphere_tree([[0.0, 0.0, 0.0]], [1.0])
     b = mjist.sphere_tree([[0.0, 0.0, 0.0]], [0.6])
