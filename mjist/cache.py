@@ -27,14 +27,28 @@ def cache_dir(path=None) -> str:
     return os.fspath(path)
 
 
+def _explicit(params: dict) -> dict:
+    """``params`` without the entries equal to ``build``'s defaults, so ``sparse=False`` and no
+    ``sparse`` at all name the same tree."""
+    import inspect
+
+    from .builder.pipeline import build
+
+    defaults = {k: p.default for k, p in inspect.signature(build).parameters.items() if p.default is not inspect.Parameter.empty}
+    return {k: v for k, v in params.items()
+            if not (k in defaults and type(v) is type(defaults[k]) and isinstance(v, (bool, int, float, str, type(None)))
+                    and v == defaults[k])}
+
+
 def tree_key(vertices, faces, params: dict) -> str:
-    """Content key of a tree: mesh bytes + build parameters + builder and format versions."""
+    """Content key of a tree: mesh bytes + build parameters (those not at their defaults) +
+    builder and format versions."""
     from .builder.pipeline import BUILDER_VERSION
 
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(vertices, np.float64).tobytes())
     h.update(np.ascontiguousarray(faces, np.int64).tobytes())
-    h.update(json.dumps(params, sort_keys=True).encode())
+    h.update(json.dumps(_explicit(params), sort_keys=True).encode())
     h.update(f"format{FORMAT_VERSION}builder{BUILDER_VERSION}".encode())
     return h.hexdigest()[:40]
 

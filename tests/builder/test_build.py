@@ -777,3 +777,14 @@ def test_coverage_depth_script_samples_the_trees_coverage():
     assert sum(b["uncovered_share"] for b in r["bands"]) == pytest.approx(1.0)
     # the surface layer thinner than ε is the least covered
     assert r["bands"][0]["coverage"] < min(b["coverage"] for b in r["bands"][1:])
+
+
+def test_cache_key_ignores_parameters_left_at_their_defaults():
+    from mjist.cache import tree_key
+
+    m = trimesh.creation.box()
+    V, F = m.vertices, m.faces
+    base = tree_key(V, F, {"max_error": 1e-3})
+    assert tree_key(V, F, {"max_error": 1e-3, "sparse": False, "seed": 0, "branching": 4}) == base
+    assert tree_key(V, F, {"max_error": 1e-3, "sparse": True}) != base
+    assert tree_key(V, F, {"max_error": 2e-3}) != base
