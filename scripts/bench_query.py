@@ -1,12 +1,15 @@
 """Query benchmark: one scripted chewing motion of the mandible against the maxilla, replayed
-with every IST traversal at several ε and with coal's exact distance on the same frames.
+with every IST traversal at several ε and with coal's exact distance on the same frames; then
+random poses near the occlusion, where no traversal has a previous frame to start from.
 
-Writes ``out/bench_query.json``, ``out/bench_query.png`` and ``out/bench_query.md``.
+Writes ``out/bench_query.json``, ``out/bench_query.png``, ``out/bench_query_random.png`` and
+``out/bench_query.md``.
 
     python scripts/bench_query.py                  # real pair (../shared/data/jaw) + bundled jaws
     python scripts/bench_query.py --eps 4e-4,2e-4,1e-4 --frames 2000
     python scripts/bench_query.py --pairs real --eps 5e-5/4.5e-5   # ε_A+ε_B ≤ 0.1 mm (maxilla/mandible)
-    python scripts/bench_query.py --quick          # 400 frames, ε 0.4 mm only
+    python scripts/bench_query.py --quick          # 400 frames, 200 random poses, ε 0.4 mm only
+    python scripts/bench_query.py --random 0       # the motion only
 
 Times are per frame, measured around each Python call (so they include ~2 µs of dispatch),
 plus the kernel-only mean of a whole replay inside numba (what a MuJoCo callback pays).
@@ -49,7 +52,7 @@ SPARSE = False  # --sparse: trees built with mjist.build(..., sparse=True)
 
 
 def _tree(path, eps):
-    tree, mesh, _ = tree_for(path, max_error=eps, sparse=SPARSE)
+    tree, mesh, _ = tree_for(path, max_error=eps, **({"sparse": True} if SPARSE else {}))
     return tree, mesh
 
 
@@ -113,6 +116,163 @@ def floor_replay(q, poses, d):
     return ts, vs
 
 
+OPEN_MAX = 3e-3  # random poses: lowered from the occlusion by up to this much, uniform (m)
+TURN = np.radians(0.3)  # random poses: standard deviation of the extra turn about the hinge, per axis
+SLIDE = 5e-4  # random poses: lateral and protrusive shift, uniform in ±SLIDE (m)
+
+
+def near_occlusion_poses(n, hinge, bvh_maxilla, bvh_mandible, touch, seed=0):
+    """``n`` random mandible poses near the occlusion, each separated from the maxilla.
+
+    Each pose opens the hinge by up to 1°, turns the mandible about the hinge by a small random
+    rotation, slides it by up to ``SLIDE`` sideways and forwards and lowers it from the first
+    touch of the stored occlusion by a gap drawn uniformly from ``[0, OPEN_MAX]``. Poses where
+    coal finds the meshes intersecting are drawn again. (Placing each pose at its own first
+    touch would take a bisection of coal collision tests, up to 0.5 s each on the interlocked
+    bundled jaws.)
+    """
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    I = np.eye(4)
+    hinge = np.asarray(hinge, float)
+    out = []
+    while len(out) < n:
+        P = jaw.hinge_pose(np.radians(rng.uniform(0.0, 1.0)), hinge, lateral=rng.uniform(-SLIDE, SLIDE),
+                           protrusion=rng.uniform(-SLIDE, SLIDE), vertical=touch - rng.uniform(0.0, OPEN_MAX))
+        turn = np.eye(4)
+        turn[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * TURN).as_matrix()
+        turn[:3, 3] = hinge - turn[:3, :3] @ hinge
+        P = turn @ P
+        if jaw.coal_distance(bvh_maxilla, I, bvh_mandible, P) > 0.0:
+            out.append(P)
+    return np.array(out)
+
+
+def run_random(label, folder, eps_list, n):
+    """Random poses near the occlusion: every traversal starts without a previous frame.
+
+    Per level: ``distance`` (plain traversal from the roots), the same with ``tolerance`` 0.1 mm
+    (its interval widens by that much), ``backtracking`` seeded by the previous random pose's
+    pair (what a Monte Carlo over poses gets for free), and the floor (the plain traversal told
+    the answer: the node pairs any exact traversal with the sphere-pair bound must open). Each
+    answer's interval is checked against coal's exact distance on the same pose.
+    """
+    mx, md, info = jaw.load_pair(folder)
+    paths = (Path(info["paths"]["maxilla"]), Path(info["paths"]["mandible"]))
+    bx, bd = jaw.coal_bvh(mx.vertices, mx.faces), jaw.coal_bvh(md.vertices, md.faces)
+    t0 = time.perf_counter()
+    poses = near_occlusion_poses(n, info["hinge"], bx, bd, float(info["mandible_pose"][1, 3]))
+    print(f"[{label}] {n} random poses near the occlusion ({time.perf_counter() - t0:.0f} s to place)", flush=True)
+    coal_t, coal_d = coal_replay(bx, bd, poses)
+    truth = np.maximum(coal_d, 0.0)
+    res = {"poses": n, "open_max": OPEN_MAX, "turn_sd_deg": float(np.degrees(TURN)), "slide": SLIDE,
+           "coal": stats(coal_t), "coal_distance": coal_d.tolist(), "coal_times": coal_t.tolist(), "levels": []}
+    print(f"  coal exact distance median {np.median(coal_t):.0f} µs, p99 {np.percentile(coal_t, 99):.0f} µs; "
+          f"true gap median {np.median(truth) * 1e3:.2f} mm", flush=True)
+    I = np.eye(4)
+    for eps_a, eps_b in eps_list:
+        ta, _ = _tree(paths[0], eps_a)
+        tb, _ = _tree(paths[1], eps_b)
+        q = mjist.Query(ta, tb)
+        lvl = {"eps_target": [eps_a, eps_b], "error_bound": q.error_bound, "leaves": [ta.num_leaves, tb.num_leaves],
+               "depth": [ta.depth, tb.depth], "methods": {}, "series": {}}
+        dist = None
+        for name, kw, fresh in (("distance", {"method": "distance"}, True),
+                                ("distance, tolerance 0.1 mm", {"method": "distance", "tolerance": 1e-4}, True),
+                                ("backtracking from the previous pose", {"method": "backtracking"}, False)):
+            q.reset()
+            q.distance(I, poses[0], **kw)  # compile / warm
+
+            def call(a, b, q=q, kw=kw, fresh=fresh):
+                if fresh:
+                    q.reset()
+                return q.distance(a, b, **kw)
+
+            q.reset()
+            ts, rs = timed(call, poses)
+            d = np.array([r.distance for r in rs])
+            eb = np.array([r.error_bound for r in rs])
+            viol = int(np.sum((truth > d + 1e-9) | (d - eb > truth + 1e-9)))
+            lvl["methods"][name] = {**stats(ts), "visits_median": float(np.median([r.visits for r in rs])),
+                                    "error_bound_max": float(eb.max()), "bound_violations": viol,
+                                    "err_max": float((d - truth).max()), "speedup_vs_coal": float(np.median(coal_t) / np.median(ts))}
+            lvl["series"][name] = ts.tolist()
+            if dist is None:
+                dist = d
+            print(f"  ε {q.error_bound * 1e3:.3f} mm {name:36s} median {np.median(ts):8.1f} µs  p99 {np.percentile(ts, 99):8.1f}"
+                  f"  × coal {np.median(coal_t) / np.median(ts):5.1f}  bound ≤ {eb.max() * 1e3:.3f} mm  violations {viol}", flush=True)
+        ts, vs = floor_replay(q, poses, dist)
+        lvl["methods"]["distance floor (answer known)"] = {**stats(ts), "visits_median": float(np.median(vs)),
+                                                           "speedup_vs_coal": float(np.median(coal_t) / np.median(ts))}
+        lvl["series"]["distance floor (answer known)"] = ts.tolist()
+        print(f"  ε {q.error_bound * 1e3:.3f} mm {'distance floor (answer known)':36s} median {np.median(ts):8.1f} µs  "
+              f"p99 {np.percentile(ts, 99):8.1f}  × coal {np.median(coal_t) / np.median(ts):5.1f}  "
+              f"visits median {np.median(vs):.0f} (plain {lvl['methods']['distance']['visits_median']:.0f})", flush=True)
+        if (eps_a, eps_b) == tuple(eps_list[0]):
+            for name, x in mujoco_distance_random(mx, md, poses, max(eps_a, eps_b), truth, coal_t).items():
+                lvl["series"][name] = x.pop("series")
+                lvl["methods"][name] = x
+        res["levels"].append(lvl)
+    return res
+
+
+GEOM_DISTMAX = (1e-3, 1e-2, 5e-2)  # m: mj_geomDistance cutoffs timed on the random poses
+
+
+def mujoco_distance_random(mx, md, poses, eps, truth, coal_t):
+    """``mj_geomDistance`` through mjist's hook on the random poses, one cutoff (``distmax``) at a
+    time, with trees at ``eps`` and no contact offset (so it returns d_IST). The hook gathers the
+    contact groups within the cutoff (MuJoCo passes it as the margin), so its cost grows with the
+    cutoff until its candidate list is full."""
+    m, d, ga, gb = _mujoco_pair([(mx.vertices, mx.faces)], [(md.vertices, md.faces)], collide=True)
+    out = {}
+    with mjist.attach(m, max_error=eps, offset="none") as h:
+        bound = h.pairs[0].error_bound
+        for dm in GEOM_DISTMAX:
+            t = np.empty(len(poses))
+            dist = np.empty(len(poses))
+            for k, P in enumerate(poses):
+                d.mocap_pos[0] = P[:3, 3]
+                mujoco.mju_mat2Quat(d.mocap_quat[0], P[:3, :3].ravel())
+                mujoco.mj_kinematics(m, d)
+                t0 = time.perf_counter_ns()
+                dist[k] = mujoco.mj_geomDistance(m, d, ga[0], gb[0], dm, None)
+                t[k] = (time.perf_counter_ns() - t0) * 1e-3
+            dd = np.maximum(dist, 0.0)
+            seen = dist < dm  # else it returns distmax: nothing within the cutoff
+            viol = int(np.sum(seen & ((truth > dd + 1e-9) | (dd - bound > truth + 1e-9))) + np.sum(~seen & (truth + bound < dm - 1e-9)))
+            name = f"mj_geomDistance, distmax {dm * 1e3:g} mm"
+            out[name] = {**stats(t), "visits_median": float("nan"), "error_bound_max": bound, "bound_violations": viol,
+                         "speedup_vs_coal": float(np.median(coal_t) / np.median(t)), "series": t.tolist()}
+            print(f"  ε {bound * 1e3:.3f} mm {name:36s} median {np.median(t):8.1f} µs  p99 {np.percentile(t, 99):8.1f}"
+                  f"  × coal {np.median(coal_t) / np.median(t):5.1f}  violations {viol}", flush=True)
+    return out
+
+
+def plot_random(results, path):
+    """Distribution of the time per random pose: coal and each IST method at each pair's finest level."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(1, len(results), figsize=(7 * len(results), 4.8), squeeze=False)
+    for ax, (label, r) in zip(axs[0], results.items()):
+        rr = r["random"]
+        fine = min(rr["levels"], key=lambda l: l["error_bound"])
+        for name, ts in [("coal (exact)", rr["coal_times"])] + list(fine["series"].items()):
+            x = np.sort(ts)
+            ax.plot(x, np.arange(1, len(x) + 1) / len(x), lw=1.2, color="k" if name.startswith("coal") else None, label=name)
+        ax.set_xscale("log")
+        ax.set_xlabel("µs per pose")
+        ax.set_ylabel("fraction of poses")
+        ax.set_title(f"{label} pair, {rr['poses']} random poses, ε_A+ε_B = {fine['error_bound'] * 1e3:.3f} mm")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def stats(ts):
     return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)), "mean_us": float(np.mean(ts))}
 
@@ -120,9 +280,10 @@ def stats(ts):
 DISTMAX = 0.05  # m: MuJoCo's distance queries look this far (the motion opens the jaw ~10 mm)
 
 
-def _mujoco_pair(parts_a, parts_b, gtype=mujoco.mjtGeom.mjGEOM_MESH):
+def _mujoco_pair(parts_a, parts_b, gtype=mujoco.mjtGeom.mjGEOM_MESH, collide=False):
     """A model with the maxilla's pieces fixed and the mandible's on a mocap body (mesh geoms:
-    MuJoCo collides their convex hulls; sdf geoms: MuJoCo's mesh SDF)."""
+    MuJoCo collides their convex hulls; sdf geoms: MuJoCo's mesh SDF). The geoms form a
+    collision pair only with ``collide`` (which is what ``mjist.attach`` manages)."""
     spec = mujoco.MjSpec()
     spec.option.sdf_initpoints = 50  # as bench_mujoco's native-sdf mode
     mocap = spec.worldbody.add_body(name="mandible", mocap=True)
@@ -131,7 +292,7 @@ def _mujoco_pair(parts_a, parts_b, gtype=mujoco.mjtGeom.mjGEOM_MESH):
         for i, (V, F) in enumerate(parts):
             name = f"{'ab'[k]}{i}"
             spec.add_mesh(name=name, uservert=np.asarray(V, float).ravel().tolist(), userface=np.asarray(F, int).ravel().tolist())
-            body.add_geom(name=name, type=gtype, meshname=name, contype=0, conaffinity=0)
+            body.add_geom(name=name, type=gtype, meshname=name, contype=int(collide), conaffinity=int(collide))
     m = spec.compile()
     for g in range(m.ngeom):
         ids[0 if m.geom_bodyid[g] == 0 else 1].append(g)
@@ -382,6 +543,21 @@ def markdown(results, meta):
             lines.append(f"| {label} | (none) | {x['pieces'][0]} / {x['pieces'][1]} pieces | | {name} | {x['median_us']:.1f} | {x['p99_us']:.1f} | | "
                          f"| {r['coal']['median_us'] / x['median_us']:.0f} | {x['err_max'] * 1e3:.3f} "
                          f"| {x['false_contacts']} false / {x['missed_contacts']} missed contacts, distance on {x['answered']} frames |")
+    if any("random" in r for r in results.values()):
+        lines += ["", "Random poses near the occlusion (no previous frame): each pose's hinge opened by up to 1°, turned "
+                  "about it, slid sideways and lowered from the occlusion by up to 3 mm; intersecting poses drawn again.", "",
+                  "| pair | poses | ε_A+ε_B mm | leaves | method | median µs | p99 µs | visits (median) | × coal | bound ≤ mm | bound viol. |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for label, r in results.items():
+            rr = r.get("random")
+            if rr is None:
+                continue
+            for l in rr["levels"]:
+                for m, x in l["methods"].items():
+                    lines.append(f"| {label} | {rr['poses']} | {l['error_bound'] * 1e3:.3f} | {l['leaves'][0]:,} / {l['leaves'][1]:,} | {m} "
+                                 f"| {x['median_us']:.1f} | {x['p99_us']:.1f} | {x['visits_median']:.0f} | {x['speedup_vs_coal']:.1f} "
+                                 f"| {x.get('error_bound_max', float('nan')) * 1e3:.3f} | {x.get('bound_violations', '')} |")
+            lines.append(f"| {label} | {rr['poses']} | exact | | coal distance | {rr['coal']['median_us']:.0f} | {rr['coal']['p99_us']:.0f} | | 1 | 0 | |")
     return "\n".join(lines) + "\n"
 
 
@@ -402,22 +578,33 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="400 frames, ε 4e-4 only, CoACD only if already decomposed")
     ap.add_argument("--out", default=str(ROOT / "out"))
     ap.add_argument("--sparse", action="store_true", help="build the trees with sparse=True (same ε, fewer leaves)")
+    ap.add_argument("--random", type=int, default=1000, help="random poses near the occlusion (default 1000; 0: none)")
+    ap.add_argument("--random-eps", default="5e-5/4.5e-5",
+                    help="extra levels for the random poses only, as --eps (default 5e-5/4.5e-5: ε_A+ε_B about 0.1 mm)")
     a = ap.parse_args(argv)
     global SPARSE
     SPARSE = a.sparse
     eps = [(4e-4, 4e-4)] if a.quick else [parse_eps(x) for x in a.eps.split(",")]
     frames = 400 if a.quick else a.frames
     out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
     avail = pairs_available()
     want = [p for p in a.pairs.split(",") if p in avail]
     if not want:
         print(f"no jaw pair found (looked for {SHARED_JAW} and {jaw.BUNDLED})", file=sys.stderr)
         return 2
     results = {p: run_pair(p, avail[p], eps, frames, out / "coacd", decompose=not a.quick) for p in want}
-    meta = {"frames": frames, "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+    n_random = min(a.random, 200) if a.quick else a.random
+    if n_random > 0:
+        extra = [] if a.quick or not a.random_eps else [parse_eps(x) for x in a.random_eps.split(",")]
+        for p in want:
+            results[p]["random"] = run_random(p, avail[p], eps + [e for e in extra if e not in eps], n_random)
+    meta = {"frames": frames, "random_poses": n_random, "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
             "mjist": mjist.__version__, "sparse": SPARSE, "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", 0) or 0)}
     (out / "bench_query.json").write_text(json.dumps({"meta": meta, "results": results}))
     plot(results, out / "bench_query.png")
+    if n_random > 0:
+        plot_random(results, out / "bench_query_random.png")
     (out / "bench_query.md").write_text(markdown(results, meta))
     print(markdown(results, meta))
     print(f"wrote {out / 'bench_query.json'}, {out / 'bench_query.png'}, {out / 'bench_query.md'}")
