@@ -233,9 +233,7 @@ def mujoco_distance_random(mx, md, poses, eps, truth, coal_t):
             t = np.empty(len(poses))
             dist = np.empty(len(poses))
             for k, P in enumerate(poses):
-                d.mocap_pos[0] = P[:3, 3]
-                mujoco.mju_mat2Quat(d.mocap_quat[0], P[:3, :3].ravel())
-                mujoco.mj_kinematics(m, d)
+                _place_mandible(m, d, P)
                 t0 = time.perf_counter_ns()
                 dist[k] = mujoco.mj_geomDistance(m, d, ga[0], gb[0], dm, None)
                 t[k] = (time.perf_counter_ns() - t0) * 1e-3
@@ -299,6 +297,13 @@ def _mujoco_pair(parts_a, parts_b, gtype=mujoco.mjtGeom.mjGEOM_MESH, collide=Fal
     return m, mujoco.MjData(m), np.array(ids[0]), np.array(ids[1])
 
 
+def _place_mandible(m, d, P):
+    """The mocap mandible of a ``_mujoco_pair`` model at pose ``P``, geoms posed (kinematics only)."""
+    d.mocap_pos[0] = P[:3, 3]
+    mujoco.mju_mat2Quat(d.mocap_quat[0], P[:3, :3].ravel())
+    mujoco.mj_kinematics(m, d)
+
+
 def mujoco_reference(name, parts_a, parts_b, poses, gtype=mujoco.mjtGeom.mjGEOM_MESH):
     """MuJoCo's own distance on the same frames: ``mj_geomDistance`` between convex pieces
     (one piece = the convex hull, as MuJoCo collides meshes; several = a CoACD decomposition,
@@ -308,9 +313,7 @@ def mujoco_reference(name, parts_a, parts_b, poses, gtype=mujoco.mjtGeom.mjGEOM_
     t = np.empty(len(poses))
     dist = np.empty(len(poses))
     for k, P in enumerate(poses):
-        d.mocap_pos[0] = P[:3, 3]
-        mujoco.mju_mat2Quat(d.mocap_quat[0], P[:3, :3].ravel())
-        mujoco.mj_kinematics(m, d)
+        _place_mandible(m, d, P)
         t0 = time.perf_counter_ns()
         best = DISTMAX
         if len(ga) * len(gb) > 1:
