@@ -63,14 +63,12 @@ from .layout import (
     E_DT_NS,
     E_FREE,
     E_FSTATE,
-    E_GSLOT,
     E_MARK,
     E_MOCPOS,
     E_MOCQUAT,
     E_NBODY,
     E_NCAND,
     E_NCPL,
-    E_NGEOM,
     E_NMAN,
     E_NMOCAP,
     E_NPEN,
@@ -81,7 +79,6 @@ from .layout import (
     E_QFRCP,
     E_STACK,
     E_TIME,
-    E_TREES,
     E_WORDS,
     E_XMAT,
     E_XPOS,
@@ -284,13 +281,7 @@ def _volume_law(E, d, row, o1, o2, com, small, big, out):
     count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
     v1, v2, pnt, nrm, tmp = small[0:6], small[6:12], small[12:15], small[15:18], small[18:27]
     acc = small[40:48]
-    nman = E[E_NMAN]
-    gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
-    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
-    ka = gslot[g1]
-    kb = gslot[g2]
-    Na = carray(abi.f64_ptr(trees[3 * ka]), (trees[3 * ka + 1], 8))
-    Nb = carray(abi.f64_ptr(trees[3 * kb]), (trees[3 * kb + 1], 8))
+    Na, Nb = hook.pair_trees(E, g1, g2)
     ns = E[E_STACK]
     Pa = big[0:16].reshape((4, 4))
     Pb = big[16:32].reshape((4, 4))

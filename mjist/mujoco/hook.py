@@ -15,6 +15,10 @@ it, ``layout.py`` declares its words), and for a managed pair:
 5. when nothing is in contact and skipping is on, a backtracking distance query refreshes
    the skip reference.
 
+A distance request (``mj_geomDistance``, distance sensors: ``con`` is not in the MjData's
+arena, see ``distance_request``) skips 2-5: its caller reads only the smallest distance, so it
+gets one contact from a backtracking distance query, whatever ``margin`` (``distmax``) it passes.
+
 Scratch memory comes from MuJoCo's own per-``mjData`` stack (``mj_stackAllocByte``), the
 coherence state from a per-model table of (MjData, pair) slots claimed with an atomic
 compare-and-swap, so several MjData on several threads never share anything writable.
@@ -37,6 +41,7 @@ from .layout import (
     C_CALLS,
     C_CONTACT_CALLS,
     C_CONTACTS,
+    C_DISTANCE,
     C_FALLBACK,
     C_FRONT,
     C_GROUPS,
@@ -184,24 +189,24 @@ def stack_room(E, d, need):
     return free >= need + STACK_RESERVE
 
 
-@njit(cache=True)
-def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
-    """Contacts of a managed pair into ``con``; returns the count (0..cap)."""
+@njit(cache=True, inline="always")
+def pair_trees(E, g1, g2):
+    """The packed trees ``(Na, Nb)`` of managed geoms ``g1``, ``g2``."""
     nman = E[E_NMAN]
-    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
     gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
+    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
     ka = gslot[g1]
     kb = gslot[g2]
-    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
     Na = carray(abi.f64_ptr(trees[3 * ka]), (trees[3 * ka + 1], 8))
     Nb = carray(abi.f64_ptr(trees[3 * kb]), (trees[3 * kb + 1], 8))
-    offset = carray(abi.f64_ptr(E[E_OFFSET]), nman * nman)[p]
-    eps = carray(abi.f64_ptr(E[E_EPS]), nman * nman)[p]
-    thr = margin + offset
+    return Na, Nb
 
-    # scratch (layout.pair_floats, layout.pair_ints): float64 poses, stack values, candidate
-    # values, dmin, geometry rows, a stateless slot, the blend accumulator; then int64 stack
-    # pairs, candidates, chosen, closest pair, a stateless slot
+
+@njit(cache=True, inline="always")
+def _pair_scratch(E, scratch, cap):
+    """Views of a pair call's scratch (``layout.pair_floats``, ``layout.pair_ints``): float64
+    poses, stack values, candidate values, dmin, geometry rows, a stateless slot, the blend
+    accumulator; then int64 stack pairs, candidates, chosen, closest pair, a stateless slot."""
     ns = E[E_STACK]
     nc = E[E_NCAND]
     nf = pair_floats(ns, nc)
@@ -222,14 +227,34 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
     st = iw[0:2 * ns].reshape((ns, 2))
     cand = iw[2 * ns:2 * ns + 4 * nc].reshape((nc, 4))
     chosen = iw[2 * ns + 4 * nc:2 * ns + 4 * nc + cap]
-    pair = iw[2 * ns + 4 * nc + cap:2 * ns + 4 * nc + cap + 2]
-    is_local = iw[2 * ns + 4 * nc + cap + 2:2 * ns + 4 * nc + cap + 2 + IW]
+    q = 2 * ns + 4 * nc + cap
+    pair = iw[q:q + 2]
+    is_local = iw[q + 2:q + 2 + IW]
+    return Pa, Pb, xf, sv, cval, dmin, geom, fs_local, bacc, st, cand, chosen, pair, is_local
 
+
+@njit(cache=True, inline="always")
+def _posed(E, d, g1, g2, Pa, Pb, xf):
+    """``Pa``, ``Pb`` ← the two geoms' world poses, ``xf`` ← B in A's frame; False for a bad pose."""
     xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
     xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
     geom_pose(xpos, xmat, g1, Pa)
     geom_pose(xpos, xmat, g2, Pb)
-    if not tv.relative_pose(Pa, Pb, xf):
+    return tv.relative_pose(Pa, Pb, xf)
+
+
+@njit(cache=True)
+def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
+    """Contacts of a managed pair into ``con``; returns the count (0..cap)."""
+    nman = E[E_NMAN]
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    Na, Nb = pair_trees(E, g1, g2)
+    offset = carray(abi.f64_ptr(E[E_OFFSET]), nman * nman)[p]
+    eps = carray(abi.f64_ptr(E[E_EPS]), nman * nman)[p]
+    thr = margin + offset
+    Pa, Pb, xf, sv, cval, dmin, geom, fs_local, bacc, st, cand, chosen, pair, is_local = _pair_scratch(E, scratch, cap)
+
+    if not _posed(E, d, g1, g2, Pa, Pb, xf):
         count[C_BADPOSE] += 1
         return 0
     ist, fst = _slot_state(E, d, p, margin, Na.shape[0], Nb.shape[0], is_local, fs_local, count)
@@ -272,6 +297,51 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
     count[C_CONTACT_CALLS] += 1
     count[C_CONTACTS] += k
     return k
+
+
+@njit(cache=True, inline="always")
+def distance_request(E, d, con, raw):
+    """Whether MuJoCo asks for the distance only: ``mj_geomDistance`` (and the distance sensors
+    that call it) passes a contact buffer on the caller's own C stack, while ``mj_collision``'s
+    buffers come from the MjData's arena, where ``raw`` (our scratch, just taken from that
+    arena's stack) also lies. A buffer within the arena's size of ``raw`` is treated as
+    ``mj_collision``'s: a wrong guess that way only costs time, never contacts."""
+    narena = abi.load_i64(d + E[E_NARENA])
+    return not (raw - narena < con < raw + narena)
+
+
+@njit(cache=True)
+def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
+    """A distance request (see ``distance_request``): the caller reads only the smallest
+    distance, so one contact from the pair's minimum leaf pair (backtracking from this slot's
+    last answer) instead of the contact groups within ``margin`` (``distmax``, often far larger
+    than a contact margin). Its distance equals the groups' deepest. Returns 0 or 1."""
+    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    Na, Nb = pair_trees(E, g1, g2)
+    offset = carray(abi.f64_ptr(E[E_OFFSET]), E[E_NMAN] * E[E_NMAN])[p]
+    Pa, Pb, xf, sv, _, _, geom, fs_local, _, st, _, _, pair, is_local = _pair_scratch(E, scratch, cap)
+    g = geom[0]
+
+    if not _posed(E, d, g1, g2, Pa, Pb, xf):
+        count[C_BADPOSE] += 1
+        return 0
+    ist, fst = _slot_state(E, d, p, margin, Na.shape[0], Nb.shape[0], is_local, fs_local, count)
+    best, code, visits = _closest(Na, Nb, xf, ist, st, sv, pair)
+    count[C_VISITS] += visits
+    if code != tv.OK:
+        count[C_FALLBACK] += 1
+        return 0
+    if not best < margin + offset:
+        return 0
+    tv.leaf_geometry(Na, Nb, xf, pair[0], pair[1], g)
+    tv.contact_normal(Na, Nb, xf, pair[0], pair[1], g, E[E_NUP])
+    row = carray(abi.f64_ptr(con), abi.PRECONTACT_DOUBLES)
+    row[0] = best - offset
+    for r in range(3):
+        row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
+        row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
+        row[7 + r] = 0.0
+    return 1
 
 
 @njit(cache=True)
@@ -376,18 +446,30 @@ def _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, p
 
 
 @njit(cache=True)
-def _refresh_skip(Na, Nb, xf, ist, fst, st, sv, pair):
-    """Nothing in contact: the far-skip reference becomes the true IST distance (backtracking
-    from last frame's closest pair)."""
+def _closest(Na, Nb, xf, ist, st, sv, pair):
+    """The pair's minimum leaf pair into ``pair``, backtracking from the slot's last one (plain
+    from the roots without one); the slot keeps it. Returns ``(best, code, visits)``."""
     if ist[I_PAIR] >= 0:
         pair[0] = ist[I_PAIR]
         pair[1] = ist[I_PAIR + 1]
-        best, code, _ = tv.min_distance_backtrack(Na, Nb, xf, st, sv, 0.0, pair, -np.inf)
+        best, code, visits = tv.min_distance_backtrack(Na, Nb, xf, st, sv, 0.0, pair, -np.inf)
     else:
-        best, code, _ = tv.min_distance(Na, Nb, xf, st, sv, np.inf, 0.0, pair, -np.inf)
+        best, code, visits = tv.min_distance(Na, Nb, xf, st, sv, np.inf, 0.0, pair, -np.inf)
     if code == tv.OK:
         ist[I_PAIR] = pair[0]
         ist[I_PAIR + 1] = pair[1]
+    else:
+        ist[I_PAIR] = -1
+        ist[I_PAIR + 1] = -1
+    return best, code, visits
+
+
+@njit(cache=True)
+def _refresh_skip(Na, Nb, xf, ist, fst, st, sv, pair):
+    """Nothing in contact: the far-skip reference becomes the true IST distance (backtracking
+    from last frame's closest pair)."""
+    best, code, _ = _closest(Na, Nb, xf, ist, st, sv, pair)
+    if code == tv.OK:
         for k in range(12):
             fst[F_REF + k] = xf[k]
         fst[F_D] = best
@@ -545,7 +627,11 @@ def collide(slot, m, d, con, g1, g2, margin):
                         return 0
                     abi.call_with_data(E[E_MARK], d)
                     raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
-                    k = pair_contacts(E, m, d, con, g1, g2, margin, p, cap, raw)
+                    if distance_request(E, d, con, raw):
+                        count[C_DISTANCE] += 1
+                        k = pair_distance(E, d, con, g1, g2, margin, p, cap, raw)
+                    else:
+                        k = pair_contacts(E, m, d, con, g1, g2, margin, p, cap, raw)
                     abi.call_with_data(E[E_FREE], d)
                     return k
             elif E[E_NPRIM] > 0:

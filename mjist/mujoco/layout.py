@@ -74,10 +74,11 @@ ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS
 (C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT,
  C_REFRESH, C_VISITS, C_GROUPS, C_PRIM_CALLS, C_PRIM_CONTACTS,
  C_STIFF,  # penalty steps whose summed contact stiffness exceeded the explicit stability bound
- N_COUNT) = range(16)
+ C_DISTANCE,  # calls answered with the distance only (mj_geomDistance, distance sensors)
+ N_COUNT) = range(17)
 COUNTER_NAMES = ("calls", "contact_calls", "contacts", "skipped", "stateless", "no_stack", "bad_pose", "failed",
                  "front_calls", "front_refreshes", "visits", "front_groups", "primitive_calls", "primitive_contacts",
-                 "over_stiffness_budget")
+                 "over_stiffness_budget", "distance_calls")
 
 # ---- state slot of one (MjData, pair) ----------------------------------------------------
 KP = 16  # contact groups remembered for next frame

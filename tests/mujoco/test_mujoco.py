@@ -210,7 +210,7 @@ def test_rollout_with_two_threads_is_bit_identical_to_serial(comb_file, cache):
     m = _model(comb_file)
     m.opt.gravity[:] = (0, 0, -9.81)
     d = mujoco.MjData(m)
-    with A.attach(m, cache_dir=cache):
+    with A.attach(m, cache_dir=cache) as h:
         _interlocked(m, d, gap_z=0.006)
         states = []
         rng = np.random.default_rng(1)
@@ -229,6 +229,7 @@ def test_rollout_with_two_threads_is_bit_identical_to_serial(comb_file, cache):
         again, _ = rollout.rollout(m, [mujoco.MjData(m), mujoco.MjData(m)], x0, nstep=300)
         # the upper comb fell and came to rest on the lower one (free fall would be 0.44 m)
         assert np.all(np.abs(serial[:, -1, 3] - 0.006) < 0.001)
+        assert h.stats()["distance_calls"] == 0
     assert np.array_equal(serial, par) and np.array_equal(par, again)
 
 
@@ -250,6 +251,7 @@ def test_thread_pool_bound_to_mjdata_gives_identical_steps(comb_file, cache):
                 traj.append(np.concatenate([d.qpos, d.qvel, [d.ncon]]))
             runs.append(np.array(traj))
         assert h.stats()["no_stack"] == 0 and h.stats()["failed"] == 0
+        assert h.stats()["distance_calls"] == 0  # the shards' contact buffers are the arena's
     assert runs[0][-1, -1] > 0 and np.array_equal(runs[0], runs[1])
 
 
@@ -275,9 +277,32 @@ def test_distance_queries_between_steps_leave_the_steps_alone(comb_file, cache):
                 if query:
                     assert mujoco.mj_geomDistance(m, d, 0, 1, 0.003, None) < 0.003
             runs.append((np.array(traj), work))
+        assert h.stats()["distance_calls"] == 200  # each query, and no step
     (ta, wa), (tb, wb) = runs
     assert ta[-1, -1] > 0 and wa[1] > 0  # resting in contact, the front in use
     assert np.array_equal(ta, tb) and np.array_equal(wa, wb)
+
+
+def test_distance_request_answers_as_the_contact_path_would(comb_file, cache):
+    """mj_geomDistance gets one contact from the pair's minimum instead of the contact groups
+    within distmax: the same distance as mj_collision's contacts at that margin, and a step
+    still gets its several contacts."""
+    m = _model(comb_file)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(4)
+    with A.attach(m, cache_dir=cache) as h:
+        several = 0
+        for _ in range(30):
+            _interlocked(m, d, gap_z=rng.uniform(-0.002, 0.003), shift_x=rng.uniform(-0.002, 0.002))
+            m.geom_margin[:] = 0.01
+            mujoco.mj_forward(m, d)
+            via_contacts = min([c.dist for c in d.contact[:d.ncon]], default=0.01)
+            several += d.ncon > 1
+            m.geom_margin[:] = 0.0
+            calls = h.stats()["distance_calls"]
+            assert mujoco.mj_geomDistance(m, d, 0, 1, 0.01, None) == pytest.approx(via_contacts, abs=1e-12)
+            assert h.stats()["distance_calls"] == calls + 1
+        assert several > 0 and h.stats()["failed"] == 0
 
 
 def test_bad_config_is_named(comb_file, cache):
