@@ -326,12 +326,12 @@ def _band_free(P, V, F, side, tlo, thi, tleft, tright, tstart, tcount, torder, C
                     last = j
                     f[i] = -1.0
                     continue
-            d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, np.inf)
+            d2, qx, qy, qz, tf, feature = tri_closest(P[i], V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, np.inf)
             d = np.sqrt(d2)
             if tf < 0 or d < r_min:
                 f[i] = -1.0
                 continue
-            if not inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
+            if not inside_near(P[i], qx, qy, qz, tf, feature, side, V, F, tlo, thi, tleft, tright, tstart, tcount, torder, stack, dirs):
                 f[i] = -1.0
                 continue
             g = d

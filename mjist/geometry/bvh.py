@@ -221,64 +221,73 @@ def face_normal(V, F, f):
     return e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
 
 
+# the feature of a triangle a closest point lies on (``closest_on_triangle``)
+VERT_A, VERT_B, VERT_C, EDGE_AB, EDGE_AC, EDGE_BC, FACE, INTERIOR = range(8)
+
+
 @njit(cache=True)
 def closest_on_triangle(px, py, pz, V, i0, i1, i2):
     """Closest point to p on triangle (V[i0], V[i1], V[i2]) (Ericson, RTCD 5.1.5), scalar form.
 
-    Returns ``(x, y, z, interior)``: ``interior`` is True when the point lies inside the
-    face (not on an edge or vertex), where ``p - q`` is along the face normal.
+    Returns ``(x, y, z, feature)``: the vertex (``VERT_A..C``), edge (``EDGE_AB, EDGE_AC,
+    EDGE_BC``) or face it lies on. ``INTERIOR`` is a face point at least 1e-9 (barycentric) from
+    the edges, where ``p - q`` is along the face normal and rounding cannot have picked the
+    wrong feature; ``FACE`` a face point closer to an edge than that.
     """
-    ax, ay, az = V[i0, 0], V[i0, 1], V[i0, 2]
-    bx, by, bz = V[i1, 0], V[i1, 1], V[i1, 2]
-    cx, cy, cz = V[i2, 0], V[i2, 1], V[i2, 2]
+    return closest_on_triangle_xyz(px, py, pz, V[i0, 0], V[i0, 1], V[i0, 2], V[i1, 0], V[i1, 1], V[i1, 2],
+                                  V[i2, 0], V[i2, 1], V[i2, 2])
+
+
+@njit(cache=True, inline="always")
+def closest_on_triangle_xyz(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """``closest_on_triangle`` of the triangle with corners ``a, b, c`` given as floats."""
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
     apx, apy, apz = px - ax, py - ay, pz - az
     d1 = _dot(abx, aby, abz, apx, apy, apz)
     d2 = _dot(acx, acy, acz, apx, apy, apz)
     if d1 <= 0.0 and d2 <= 0.0:
-        return ax, ay, az, False
+        return ax, ay, az, VERT_A
     bpx, bpy, bpz = px - bx, py - by, pz - bz
     d3 = _dot(abx, aby, abz, bpx, bpy, bpz)
     d4 = _dot(acx, acy, acz, bpx, bpy, bpz)
     if d3 >= 0.0 and d4 <= d3:
-        return bx, by, bz, False
+        return bx, by, bz, VERT_B
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
         v = d1 / (d1 - d3)
-        return ax + v * abx, ay + v * aby, az + v * abz, False
+        return ax + v * abx, ay + v * aby, az + v * abz, EDGE_AB
     cpx, cpy, cpz = px - cx, py - cy, pz - cz
     d5 = _dot(abx, aby, abz, cpx, cpy, cpz)
     d6 = _dot(acx, acy, acz, cpx, cpy, cpz)
     if d6 >= 0.0 and d5 <= d6:
-        return cx, cy, cz, False
+        return cx, cy, cz, VERT_C
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
         w = d2 / (d2 - d6)
-        return ax + w * acx, ay + w * acy, az + w * acz, False
+        return ax + w * acx, ay + w * acy, az + w * acz, EDGE_AC
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), False
+        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), EDGE_BC
     denom = 1.0 / (va + vb + vc)
     v = vb * denom
     w = vc * denom
-    # interior with a margin: near an edge, rounding could pick the wrong feature
-    interior = v > 1e-9 and w > 1e-9 and v + w < 1.0 - 1e-9
-    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, interior
+    feature = INTERIOR if v > 1e-9 and w > 1e-9 and v + w < 1.0 - 1e-9 else FACE
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, feature
 
 
 @njit(cache=True)
 def tri_closest(p, V, F, lo, hi, left, right, start, count, order, stack, best=np.inf):
     """Squared distance from ``p`` to the mesh, the closest point (x, y, z), its triangle and
-    whether it lies inside that triangle (see ``closest_on_triangle``).
+    the triangle's feature it lies on (see ``closest_on_triangle``).
 
     ``best`` is an initial squared bound: when nothing is closer it is returned unchanged,
     with triangle -1.
     """
     qx = qy = qz = 0.0
     bf = -1
-    interior = False
+    feature = INTERIOR
     px, py, pz = p[0], p[1], p[2]
     stack[0] = 0
     sp = 1
@@ -290,13 +299,13 @@ def tri_closest(p, V, F, lo, hi, left, right, start, count, order, stack, best=n
         if left[node] < 0:
             for i in range(start[node], start[node] + count[node]):
                 f = order[i]
-                x, y, z, inner = closest_on_triangle(px, py, pz, V, F[f, 0], F[f, 1], F[f, 2])
+                x, y, z, feat = closest_on_triangle(px, py, pz, V, F[f, 0], F[f, 1], F[f, 2])
                 d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
                 if d2 < best:
                     best = d2
                     qx, qy, qz = x, y, z
                     bf = f
-                    interior = inner
+                    feature = feat
             continue
         l = left[node]
         r = right[node]
@@ -310,7 +319,7 @@ def tri_closest(p, V, F, lo, hi, left, right, start, count, order, stack, best=n
             stack[sp] = l
             stack[sp + 1] = r
         sp += 2
-    return best, qx, qy, qz, bf, interior
+    return best, qx, qy, qz, bf, feature
 
 
 # Ray directions for inside tests: generic (no two components equal, irrational-looking)
@@ -442,15 +451,15 @@ def inside(p, V, F, lo, hi, left, right, start, count, order, stack, dirs):
 
 
 @njit(cache=True)
-def inside_near(p, qx, qy, qz, tf, interior, side, V, F, lo, hi, left, right, start, count, order, stack, dirs):
-    """``inside`` for a point whose closest surface point ``q`` (on triangle ``tf``) is known.
+def inside_near(p, qx, qy, qz, tf, feature, side, V, F, lo, hi, left, right, start, count, order, stack, dirs):
+    """``inside`` for a point whose closest surface point ``q`` (on ``feature`` of triangle ``tf``) is known.
 
     When ``q`` lies inside a face that no other face touches, ``p`` is on that face's outer
     side (winding number ``side[tf]``) or its inner side (``side[tf] + 1``): no ray is cast
     (see ``selfintersect``). Faces crossed by others (``side == NO_SIDE``: CBCT fins whose two
     sides cross, overlapping shells) and closest points on an edge or vertex take the ray cast.
     """
-    if interior:
+    if feature == INTERIOR:
         w = side[tf]
         if w != NO_SIDE:
             nx, ny, nz = face_normal(V, F, tf)
@@ -494,9 +503,9 @@ def signed_distance(P, V, F, side, lo, hi, left, right, start, count, order, dir
     out = np.empty(n)
     for i in prange(n):
         stack = np.empty(STACK, np.int64)
-        d2, qx, qy, qz, tf, interior = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
+        d2, qx, qy, qz, tf, feature = tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)
         d = np.sqrt(d2)
-        if inside_near(P[i], qx, qy, qz, tf, interior, side, V, F, lo, hi, left, right, start, count, order, stack, dirs):
+        if inside_near(P[i], qx, qy, qz, tf, feature, side, V, F, lo, hi, left, right, start, count, order, stack, dirs):
             out[i] = d
         else:
             out[i] = -d

@@ -1,0 +1,323 @@
+"""A closed mesh's surface for the narrow phase: signed distance, closest point and outward
+direction of any point, and the local distance between two posed surfaces (numba).
+
+The sign comes from angle-weighted pseudo-normals (Bærentzen & Aanæs 2005): the normal of the
+face, edge or vertex the closest point lies on, which tells inside from outside exactly on a
+closed, consistently wound surface without self-intersections. Near a self-intersection (CBCT
+fins) the sign can be wrong within the crossing region.
+
+A surface is two flat arrays (``Surface.floats``, ``Surface.ints``) and three sizes, so the
+MuJoCo hook can read it from addresses; ``unpack`` gives the views every kernel takes as one
+tuple ``S``:
+
+``NODE (m, 8)`` the triangle BVH (``bvh.build_bvh``), one 64-byte row per node: box ``lo``,
+``hi``, then children ``left, right``, or for a leaf ``-count, first``; ``TRI (nf, 9)`` the
+triangles' corners in the BVH's leaf order and ``ORDER (nf,)`` their face ids; ``F (nf, 3)``
+faces, ``FN (nf, 3)`` unit face normals, ``VN (nv, 3)`` vertex pseudo-normals, ``ADJ (nf, 3)``
+the face across edge ab, ac, bc (-1: none). A query touches a node's row and its leaves'
+corners only, one or two cache lines each (``bvh``'s build-time layout spreads a node over
+six arrays): the narrow phase's queries are memory-bound.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from . import bvh
+
+STACK = bvh.STACK  # traversal stack words a query needs
+NODE_W = 8
+
+
+@dataclass
+class Surface:
+    """A surface packed for the kernels (``unpack(s.floats, s.ints, *s.sizes)``)."""
+
+    floats: np.ndarray
+    ints: np.ndarray
+    sizes: tuple[int, int, int]  # vertices, faces, BVH nodes
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.floats.nbytes + self.ints.nbytes)
+
+    def views(self):
+        return unpack(self.floats, self.ints, *self.sizes)
+
+
+def build_surface(V, F) -> Surface:
+    """Pack a closed triangle mesh ``V (nv, 3)``, ``F (nf, 3)`` for the narrow-phase kernels."""
+    V = np.ascontiguousarray(V, np.float64)
+    F = np.ascontiguousarray(F, np.int64)
+    nv, nf = V.shape[0], F.shape[0]
+    tri = V[F]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(n, axis=1)
+    FN = n / np.where(area2 > 0, area2, 1.0)[:, None]
+    # vertex pseudo-normals: face normals weighted by the face's angle at the vertex
+    VN = np.zeros((nv, 3))
+    for k in range(3):
+        e1 = tri[:, (k + 1) % 3] - tri[:, k]
+        e2 = tri[:, (k + 2) % 3] - tri[:, k]
+        c = np.einsum("ij,ij->i", e1, e2)
+        s = np.linalg.norm(np.cross(e1, e2), axis=1)
+        np.add.at(VN, F[:, k], np.arctan2(s, c)[:, None] * FN)
+    VN /= np.maximum(np.linalg.norm(VN, axis=1), 1e-300)[:, None]
+    # the face across each edge (ab, ac, bc), matched through sorted vertex keys
+    edges = np.concatenate([F[:, [0, 1]], F[:, [0, 2]], F[:, [1, 2]]])
+    key = np.sort(edges, axis=1)
+    key = key[:, 0] * nv + key[:, 1]
+    owner = np.tile(np.arange(nf), 3)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    ADJ = np.full(3 * nf, -1, np.int64)
+    same = ks[1:] == ks[:-1]
+    single = same & np.r_[True, ~same[:-1]] & np.r_[~same[1:], True]  # exactly two faces share the edge
+    i = np.nonzero(single)[0]
+    ADJ[order[i]] = owner[order[i + 1]]
+    ADJ[order[i + 1]] = owner[order[i]]
+    ADJ = ADJ.reshape(3, nf).T.copy()
+    lo, hi, left, right, start, count, border = bvh.build_bvh(tri.min(axis=1), tri.max(axis=1))
+    m = lo.shape[0]
+    leaf = left < 0
+    node = np.empty((m, NODE_W))
+    node[:, 0:3] = lo
+    node[:, 3:6] = hi
+    node[:, 6] = np.where(leaf, -count, left)
+    node[:, 7] = np.where(leaf, start, right)
+    floats = np.concatenate([node.ravel(), tri[border].ravel(), FN.ravel(), VN.ravel()])
+    ints = np.concatenate([border, F.ravel(), ADJ.ravel()]).astype(np.int64)
+    return Surface(floats, ints, (nv, nf, m))
+
+
+@njit(cache=True)
+def unpack(floats, ints, nv, nf, m):
+    """The kernels' views ``(NODE, TRI, ORDER, F, FN, VN, ADJ)`` of a packed surface."""
+    o = NODE_W * m
+    NODE = floats[0:o].reshape((m, NODE_W))
+    TRI = floats[o:o + 9 * nf].reshape((nf, 9))
+    o += 9 * nf
+    FN = floats[o:o + 3 * nf].reshape((nf, 3))
+    o += 3 * nf
+    VN = floats[o:o + 3 * nv].reshape((nv, 3))
+    ORDER = ints[0:nf]
+    F = ints[nf:4 * nf].reshape((nf, 3))
+    ADJ = ints[4 * nf:7 * nf].reshape((nf, 3))
+    return NODE, TRI, ORDER, F, FN, VN, ADJ
+
+
+@njit(cache=True, inline="always")
+def float_words(nv, nf, m):
+    """Length of a packed surface's ``floats``."""
+    return NODE_W * m + 12 * nf + 3 * nv
+
+
+@njit(cache=True, inline="always")
+def int_words(nf):
+    """Length of a packed surface's ``ints``."""
+    return 7 * nf
+
+
+@njit(cache=True, inline="always")
+def _box2(px, py, pz, NODE, i):
+    """Squared distance from a point to node ``i``'s box."""
+    d2 = 0.0
+    for k, p in ((0, px), (1, py), (2, pz)):
+        v = NODE[i, k] - p
+        if v > 0.0:
+            d2 += v * v
+        else:
+            v = p - NODE[i, 3 + k]
+            if v > 0.0:
+                d2 += v * v
+    return d2
+
+
+@njit(cache=True, inline="always")
+def _closest(S, px, py, pz, stack, best):
+    """Squared distance to the surface, closest point, its triangle's position in ``TRI`` and
+    its feature (``bvh.closest_on_triangle``); triangle -1 when nothing is closer than ``best``."""
+    NODE, TRI = S[0], S[1]
+    qx = qy = qz = 0.0
+    bt = -1
+    feature = bvh.INTERIOR
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        i = stack[sp]
+        if _box2(px, py, pz, NODE, i) >= best:
+            continue
+        c = NODE[i, 6]
+        if c < 0.0:
+            t0 = int(NODE[i, 7])
+            for t in range(t0, t0 - int(c)):
+                T = TRI[t]
+                x, y, z, feat = bvh.closest_on_triangle_xyz(px, py, pz, T[0], T[1], T[2], T[3], T[4], T[5],
+                                                            T[6], T[7], T[8])
+                d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+                if d2 < best:
+                    best = d2
+                    qx, qy, qz = x, y, z
+                    bt = t
+                    feature = feat
+            continue
+        l = int(c)
+        r = int(NODE[i, 7])
+        # the nearer child is popped next
+        if _box2(px, py, pz, NODE, l) < _box2(px, py, pz, NODE, r):
+            stack[sp] = r
+            stack[sp + 1] = l
+        else:
+            stack[sp] = l
+            stack[sp + 1] = r
+        sp += 2
+    return best, qx, qy, qz, bt, feature
+
+
+@njit(cache=True, inline="always")
+def _pseudo_normal(S, f, feature):
+    """Unnormalized pseudo-normal of ``feature`` (``bvh.VERT_A`` ...) of face ``f``."""
+    F, FN, VN, ADJ = S[3], S[4], S[5], S[6]
+    if feature <= bvh.VERT_C:
+        v = F[f, feature]
+        return VN[v, 0], VN[v, 1], VN[v, 2]
+    if feature <= bvh.EDGE_BC:
+        g = ADJ[f, feature - bvh.EDGE_AB]
+        if g >= 0:
+            return FN[f, 0] + FN[g, 0], FN[f, 1] + FN[g, 1], FN[f, 2] + FN[g, 2]
+    return FN[f, 0], FN[f, 1], FN[f, 2]
+
+
+@njit(cache=True)
+def signed_closest(S, px, py, pz, stack, bound2, out):
+    """Signed distance of ``p`` to the surface ``S`` (negative inside), its closest point and the
+    outward direction (the distance's gradient) into ``out[0:7]``.
+
+    ``bound2``: a squared distance the closest point is known to lie within (``np.inf``
+    without one). Returns False when the surface has no point within it (``out`` untouched).
+    """
+    d2, qx, qy, qz, t, feature = _closest(S, px, py, pz, stack, bound2)
+    if t < 0:
+        return False
+    f = S[2][t]
+    nx, ny, nz = _pseudo_normal(S, f, feature)
+    dx, dy, dz = px - qx, py - qy, pz - qz
+    d = math.sqrt(d2)
+    side = dx * nx + dy * ny + dz * nz
+    sign = -1.0 if side < 0.0 else 1.0
+    if d > 1e-12 * (1.0 + abs(qx) + abs(qy) + abs(qz)):
+        gx, gy, gz = sign * dx / d, sign * dy / d, sign * dz / d
+    else:
+        nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+        gx, gy, gz = nx / nn, ny / nn, nz / nn
+    out[0] = sign * d
+    out[1] = qx
+    out[2] = qy
+    out[3] = qz
+    out[4] = gx
+    out[5] = gy
+    out[6] = gz
+    return True
+
+
+REFINE_W = 21  # float64 words of local_distance's temporaries
+
+
+@njit(cache=True, inline="always")
+def _to_b(xf, x, y, z):
+    """A point of A's frame in B's frame: R^T (p - t)."""
+    px, py, pz = x - xf[9], y - xf[10], z - xf[11]
+    return (xf[0] * px + xf[3] * py + xf[6] * pz, xf[1] * px + xf[4] * py + xf[7] * pz,
+            xf[2] * px + xf[5] * py + xf[8] * pz)
+
+
+@njit(cache=True, inline="always")
+def _near(S, x, y, z, stack, within, out):
+    """``signed_closest`` looking first within ``within`` of the point (a bound that prunes the
+    tree), then everywhere when rounding left the bound too tight."""
+    if within < np.inf and signed_closest(S, x, y, z, stack, (within * (1.0 + 1e-9) + 1e-300) ** 2, out):
+        return True
+    return signed_closest(S, x, y, z, stack, np.inf, out)
+
+
+@njit(cache=True, inline="always")
+def _on_b(SB, xf, x, y, z, stack, within, b):
+    """``b`` ← B's closest point to ``(x, y, z)`` (known within ``within``) and B's outward
+    direction there, in A's frame."""
+    bx, by, bz = _to_b(xf, x, y, z)
+    if not _near(SB, bx, by, bz, stack, within, b):
+        return False
+    cx, cy, cz = b[1], b[2], b[3]
+    gx, gy, gz = b[4], b[5], b[6]
+    b[1] = xf[0] * cx + xf[1] * cy + xf[2] * cz + xf[9]
+    b[2] = xf[3] * cx + xf[4] * cy + xf[5] * cz + xf[10]
+    b[3] = xf[6] * cx + xf[7] * cy + xf[8] * cz + xf[11]
+    b[4] = xf[0] * gx + xf[1] * gy + xf[2] * gz
+    b[5] = xf[3] * gx + xf[4] * gy + xf[5] * gz
+    b[6] = xf[6] * gx + xf[7] * gy + xf[8] * gz
+    return True
+
+
+@njit(cache=True)
+def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
+    """Distance between surfaces ``SA`` and ``SB`` near the point ``(x, y, z)`` (A's frame; ``xf``
+    is B's pose in A's frame, rotation row-major then translation), into ``out[0:7]``: signed
+    distance, contact point, unit normal from A to B, all in A's frame.
+
+    Minimizes A's signed distance over B's surface, from B's point closest to the start: steps
+    against A's gradient along B's tangent plane, each projected back onto B, with
+    Barzilai–Borwein lengths (the first ``step0`` times the gradient); a step that does not
+    lower the distance is retried a quarter as long. ``iters`` surface queries of A at most, or
+    until a step would be shorter than ``tol``. The answer is the smallest value met: for
+    separated surfaces a true distance between two surface points (an upper bound of the
+    surfaces' distance, equal to it at a local minimum), for overlapping ones minus the depth
+    of B's deepest point met inside A. The point is the middle of that point of B and its
+    closest point on A; the normal, A's outward direction there. ``tmp``: ``REFINE_W`` floats.
+    Returns False when a surface query fails.
+    """
+    a = tmp[0:7]  # A at the trial point
+    b = tmp[7:14]  # B's trial point and normal
+    yb = tmp[14:17]  # best point of B
+    tb = tmp[17:20]  # A's tangential gradient there
+    if not _on_b(SB, xf, x, y, z, stack, np.inf, b):
+        return False
+    best = np.inf
+    alpha = step0
+    within = np.inf  # A's surface lies within this of the trial point
+    tn = 0.0
+    for it in range(max(iters, 1)):
+        if not _near(SA, b[1], b[2], b[3], stack, within, a):
+            return False
+        gn = a[4] * b[4] + a[5] * b[5] + a[6] * b[6]
+        tx, ty, tz = a[4] - gn * b[4], a[5] - gn * b[5], a[6] - gn * b[6]
+        if a[0] < best:
+            if it > 0:  # Barzilai–Borwein length from the accepted step
+                sx, sy, sz = b[1] - yb[0], b[2] - yb[1], b[3] - yb[2]
+                sg = sx * (tx - tb[0]) + sy * (ty - tb[1]) + sz * (tz - tb[2])
+                if sg > 0.0:
+                    alpha = min((sx * sx + sy * sy + sz * sz) / sg, 100.0 * step0)
+            best = a[0]
+            out[0] = a[0]
+            out[1] = 0.5 * (b[1] + a[1])
+            out[2] = 0.5 * (b[2] + a[2])
+            out[3] = 0.5 * (b[3] + a[3])
+            out[4] = a[4]
+            out[5] = a[5]
+            out[6] = a[6]
+            yb[0], yb[1], yb[2] = b[1], b[2], b[3]
+            tb[0], tb[1], tb[2] = tx, ty, tz
+            tn = math.sqrt(tx * tx + ty * ty + tz * tz)
+        else:
+            alpha *= 0.25
+        if alpha * tn < tol or it == iters - 1:
+            break
+        if not _on_b(SB, xf, yb[0] - alpha * tb[0], yb[1] - alpha * tb[1], yb[2] - alpha * tb[2], stack,
+                     alpha * tn, b):
+            return False
+        # A's surface lies within the best distance plus how far the trial point moved
+        within = abs(best) + math.sqrt((b[1] - yb[0]) ** 2 + (b[2] - yb[1]) ** 2 + (b[3] - yb[2]) ** 2)
+    return True
