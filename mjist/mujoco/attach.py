@@ -58,7 +58,8 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
         Progress bars while building trees.
     **settings
         Override the MJCF ``<custom>`` settings: ``geoms``, ``max_error``, ``contacts``,
-        ``offset``, ``mode``, ``split_depth``, ``skip``, ``state_slots``, ``candidates``.
+        ``offset``, ``mode``, ``split_depth``, ``skip``, ``state_slots``, ``candidates``,
+        ``narrowphase``.
 
     Returns
     -------
@@ -94,6 +95,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     gap = _load_trees(model, cfg, handle, used, trees, cache_dir, progress)
     slot_of = {g: k for k, g in enumerate(used)}
     arrays, slots = _tree_tables(model, handle, slot_of)
+    _surface_tables(model, cfg, handle, slot_of, arrays)
     slots |= _pair_tables(model, cfg, handle, pairs, slot_of, gap, arrays)
     slots |= _primitive_tables(model, cfg, handle, prim_pairs, slot_of, gap, arrays)
     pen, cpl, pair_index = _force_tables(model, cfg, handle, slot_of, len(used))
@@ -170,6 +172,29 @@ def _tree_tables(model, handle: Handle, slot_of: dict) -> tuple[dict, set]:
     return arrays, set()
 
 
+def _surface_tables(model, cfg: Config, handle: Handle, slot_of: dict, arrays: dict) -> None:
+    """With ``mjist_narrowphase='surface'``: each managed mesh packed for the surface narrow phase
+    (``geometry.surface``, shared by geoms of one mesh) and the per-geom table the cfuncs read."""
+    nman = len(slot_of)
+    tab = np.zeros(5 * max(nman, 1), np.int64)
+    arrays.update(surf=tab, surfaces=[])
+    if cfg.narrowphase != "surface":
+        return
+    from ..geometry.surface import build_surface
+
+    t0 = time.perf_counter()
+    by_mesh = {}
+    for g, k in slot_of.items():
+        mid = int(model.geom_dataid[g])
+        if mid not in by_mesh:
+            by_mesh[mid] = build_surface(*mesh_of(model, g))
+        s = by_mesh[mid]
+        handle.surfaces[geom_name(model, g)] = s
+        tab[5 * k:5 * k + 5] = [s.floats.ctypes.data, s.ints.ctypes.data, *s.sizes]
+    arrays["surfaces"] = list(by_mesh.values())  # kept alive with the entry
+    handle.surface_seconds = time.perf_counter() - t0
+
+
 def _pair_offset(cfg: Config, gap: float, eps: float, what: str) -> float:
     """The distance subtracted from the pair's IST distance (``mjist_offset``)."""
     if cfg.offset == "none":
@@ -195,7 +220,8 @@ def _pair_tables(model, cfg: Config, handle: Handle, pairs, slot_of: dict, gap: 
         if c < 1:
             continue
         eps = handle.trees[geom_name(model, a)].error_bound + handle.trees[geom_name(model, b)].error_bound
-        o = _pair_offset(cfg, gap[a] + gap[b], eps, f"{geom_name(model, a)} ↔ {geom_name(model, b)} (ε1+ε2)")
+        o = 0.0 if cfg.narrowphase == "surface" else _pair_offset(cfg, gap[a] + gap[b], eps,
+                                                                 f"{geom_name(model, a)} ↔ {geom_name(model, b)} (ε1+ε2)")
         ka, kb = slot_of[a], slot_of[b]
         if cfg.mode == "penalty":
             c = -1  # the hook writes no contact; forces.py applies the pair's force
@@ -272,7 +298,8 @@ def _write_words(E, model, cfg: Config, arrays: dict, off_d: dict, npen: int, nc
     L = layout
     addr = {L.E_GSLOT: "gslot", L.E_CAP: "cap", L.E_TREES: "trees", L.E_OFFSET: "offset", L.E_KEYS: "keys",
             L.E_ISTATE: "istate", L.E_FSTATE: "fstate", L.E_COUNT: "counters", L.E_EPS: "eps", L.E_GPRIM: "gprim",
-            L.E_PRIM: "prim", L.E_PCAP: "pcap", L.E_POFF: "poff", L.E_PEN: "pen", L.E_CPL: "cpl", L.E_POUT: "pout"}
+            L.E_PRIM: "prim", L.E_PCAP: "pcap", L.E_POFF: "poff", L.E_PEN: "pen", L.E_CPL: "cpl", L.E_POUT: "pout",
+            L.E_SURF: "surf"}
     for word, name in addr.items():
         E[word] = arrays[name].ctypes.data
     data_field = {L.E_XPOS: "geom_xpos", L.E_XMAT: "geom_xmat", L.E_NARENA: "narena", L.E_PSTACK: "pstack",
@@ -299,6 +326,7 @@ def _write_words(E, model, cfg: Config, arrays: dict, off_d: dict, npen: int, nc
     E[L.E_NBODY] = model.nbody
     E[L.E_NMOCAP] = model.nmocap
     E[L.E_DT_NS] = int(round(model.opt.timestep * 1e9))
+    E[L.E_NARROW] = int(cfg.surface_groups) if cfg.narrowphase == "surface" else 0
 
 
 def _pair_cap(model, g1: int, g2: int, cfg: Config) -> int:

@@ -42,6 +42,8 @@ class Handle:
     primitive_pairs: list[PairInfo] = field(default_factory=list)  # geom1 = the primitive
     build_seconds: float = 0.0
     cache_hits: int = 0
+    surfaces: dict[str, object] = field(default_factory=dict)  # mjist_narrowphase surface: geometry.surface.Surface by geom
+    surface_seconds: float = 0.0  # building them
     _entry: object = None
 
     @property

@@ -15,6 +15,11 @@ it, ``layout.py`` declares its words), and for a managed pair:
 5. when nothing is in contact and skipping is on, a backtracking distance query refreshes
    the skip reference.
 
+With ``mjist_narrowphase='surface'`` the threshold of 3 is ``margin + ε1 + ε2`` (every leaf
+pair whose surfaces can be within ``margin`` of each other lies in a group below it), and
+each group's distance, point and normal come from the meshes themselves
+(``geometry.surface.local_distance``, started at the group's deepest leaf pair) before 4.
+
 A distance request (``mj_geomDistance``, distance sensors: ``con`` is not in the MjData's
 arena, see ``distance_request``) skips 2-5: its caller reads only the smallest distance, so it
 gets one contact from a backtracking distance query, whatever ``margin`` (``distmax``) it passes.
@@ -32,6 +37,7 @@ import math
 import numpy as np
 from numba import carray, cfunc, njit, types
 
+from ..geometry import surface as sf
 from ..query import primitive as cp
 from ..query import traverse as tv
 from ..query.select import spread
@@ -51,6 +57,7 @@ from .layout import (
     C_REFRESH,
     C_SKIPPED,
     C_STATELESS,
+    C_SURFACE,
     C_VISITS,
     E_ALLOC,
     E_CAP,
@@ -64,6 +71,7 @@ from .layout import (
     E_KEYS,
     E_MARK,
     E_NARENA,
+    E_NARROW,
     E_NCAND,
     E_NGEOM,
     E_NMAN,
@@ -80,6 +88,7 @@ from .layout import (
     E_SKIP,
     E_SPLIT,
     E_STACK,
+    E_SURF,
     E_TIME,
     E_TREES,
     E_WORDS,
@@ -115,6 +124,7 @@ from .layout import (
     ROOT_ORIG,
     ROOT_WORDS,
     STACK_RESERVE,
+    SURF_F,
     pair_floats,
     pair_ints,
     pair_scratch_bytes,
@@ -125,6 +135,13 @@ from .layout import (
 )
 
 SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of ε1+ε2, x last step's motion
+# surface narrow phase: surface queries of A per contact group at most (more reach the surfaces'
+# closest points from farther starts, i.e. coarser trees, at a linear cost) ...
+SURFACE_ITERS = 10
+# ... stopping once a step would move less than this fraction of ε1+ε2
+SURFACE_TOL = 1e-3
+# contacts closer than this fraction of ε1+ε2 are one: groups whose descents met at one point
+SURFACE_SAME = 1e-2
 
 
 @njit(cache=True, inline="always")
@@ -251,7 +268,8 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
     Na, Nb = pair_trees(E, g1, g2)
     offset = carray(abi.f64_ptr(E[E_OFFSET]), nman * nman)[p]
     eps = carray(abi.f64_ptr(E[E_EPS]), nman * nman)[p]
-    thr = margin + offset
+    surface = E[E_NARROW] != 0
+    thr = margin + (eps if surface else offset)
     Pa, Pb, xf, sv, cval, dmin, geom, fs_local, bacc, st, cand, chosen, pair, is_local = _pair_scratch(E, scratch, cap)
 
     if not _posed(E, d, g1, g2, Pa, Pb, xf):
@@ -290,8 +308,15 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
             _refresh_skip(Na, Nb, xf, ist, fst, st, sv, pair)
         return 0
     fst[F_OK] = 0.0
-    k = tv.select_spread(Na, Nb, xf, cand, cval, n, cap, chosen, geom, dmin)
-    _write_contacts(E, Na, Nb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con, cap, count)
+    if surface:
+        k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
+                              scratch, count)
+        if k == 0:
+            return 0
+    else:
+        k = tv.select_spread(Na, Nb, xf, cand, cval, n, cap, chosen, geom, dmin)
+        _write_contacts(E, Na, Nb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con, cap,
+                        count)
     ist[I_PAIR] = cand[chosen[0], 2]
     ist[I_PAIR + 1] = cand[chosen[0], 3]
     count[C_CONTACT_CALLS] += 1
@@ -315,11 +340,13 @@ def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
     """A distance request (see ``distance_request``): the caller reads only the smallest
     distance, so one contact from the pair's minimum leaf pair (backtracking from this slot's
     last answer) instead of the contact groups within ``margin`` (``distmax``, often far larger
-    than a contact margin). Its distance equals the groups' deepest. Returns 0 or 1."""
+    than a contact margin). Its distance equals the groups' deepest. With the surface narrow
+    phase, the smallest of the surfaces' distances over the groups within ε1+ε2 of the IST's
+    minimum, or that minimum when it is smaller and positive. Returns 0 or 1."""
     count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
     Na, Nb = pair_trees(E, g1, g2)
     offset = carray(abi.f64_ptr(E[E_OFFSET]), E[E_NMAN] * E[E_NMAN])[p]
-    Pa, Pb, xf, sv, _, _, geom, fs_local, _, st, _, _, pair, is_local = _pair_scratch(E, scratch, cap)
+    Pa, Pb, xf, sv, cval, _, geom, fs_local, _, st, cand, _, pair, is_local = _pair_scratch(E, scratch, cap)
     g = geom[0]
 
     if not _posed(E, d, g1, g2, Pa, Pb, xf):
@@ -331,11 +358,36 @@ def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
     if code != tv.OK:
         count[C_FALLBACK] += 1
         return 0
+    row = carray(abi.f64_ptr(con), abi.PRECONTACT_DOUBLES)
+    if E[E_NARROW] != 0:
+        eps = carray(abi.f64_ptr(E[E_EPS]), E[E_NMAN] * E[E_NMAN])[p]
+        if not best - eps < margin:  # the surfaces are at least best - ε1 - ε2 apart
+            return 0
+        la, lb = pair[0], pair[1]
+        j = _surface_distance(E, Na, Nb, xf, g1, g2, best, eps, ist, st, sv, cand, cval, geom, pair, cap, scratch,
+                              count)
+        sval = _surface_scratch(E, scratch, cap)[0]
+        # both are upper bounds of a separated pair's distance (the spheres lie inside the
+        # meshes): the spheres answer when the descents ended above them; a negative surface
+        # value is a measured depth, which the spheres' overlap is not
+        if j >= 0 and (sval[j] < 0.0 or not best < sval[j]):
+            if not sval[j] < margin:
+                return 0
+            g = geom[j]
+            row[0] = sval[j]
+            for r in range(3):
+                row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
+                row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
+                row[7 + r] = 0.0
+            return 1
+        if j < 0:
+            count[C_FALLBACK] += 1
+        pair[0], pair[1] = la, lb
+        g = geom[0]
     if not best < margin + offset:
         return 0
     tv.leaf_geometry(Na, Nb, xf, pair[0], pair[1], g)
     tv.contact_normal(Na, Nb, xf, pair[0], pair[1], g, E[E_NUP])
-    row = carray(abi.f64_ptr(con), abi.PRECONTACT_DOUBLES)
     row[0] = best - offset
     for r in range(3):
         row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
@@ -511,6 +563,146 @@ def _blend_group(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair, g):
         g[r] = acc[1 + r] / nn
         g[9 + r] = acc[4 + r] / acc[0]
     return visits
+
+
+@njit(cache=True, inline="always")
+def _surface(E, g):
+    """The packed surface (``geometry.surface.unpack``) of managed geom ``g``."""
+    k = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])[g]
+    tab = carray(abi.i64_ptr(E[E_SURF]), 5 * E[E_NMAN])
+    nv = tab[5 * k + 2]
+    nf = tab[5 * k + 3]
+    m = tab[5 * k + 4]
+    fl = carray(abi.f64_ptr(tab[5 * k]), sf.float_words(nv, nf, m))
+    it = carray(abi.i64_ptr(tab[5 * k + 1]), sf.int_words(nf))
+    return sf.unpack(fl, it, nv, nf, m)
+
+
+@njit(cache=True)
+def _deepest(E, cand, cval, n):
+    """Moves the ``E[E_NARROW]`` groups with the smallest IST distances to the front of ``cand``
+    (and ``cval``), in order, and returns their count; ties keep the traversal's order."""
+    k = min(n, E[E_NARROW])
+    for j in range(k):
+        b = j
+        for i in range(j + 1, n):
+            if cval[i] < cval[b]:
+                b = i
+        if b != j:
+            cval[j], cval[b] = cval[b], cval[j]
+            for c in range(4):
+                cand[j, c], cand[b, c] = cand[b, c], cand[j, c]
+    return k
+
+
+@njit(cache=True, inline="always")
+def _surface_scratch(E, scratch, cap):
+    """The surface narrow phase's part of a pair call's scratch (the tails of
+    ``layout.pair_floats`` and ``layout.pair_ints``): candidate values, ``local_distance``'s
+    temporaries and answer, the surface queries' stack."""
+    ns = E[E_STACK]
+    nc = E[E_NCAND]
+    nf = pair_floats(ns, nc)
+    f = carray(abi.f64_ptr(scratch), nf)
+    o = nf - nc - SURF_F
+    sval = f[o:o + nc]
+    tmp = f[o + nc:o + nc + sf.REFINE_W]
+    res = f[o + nc + sf.REFINE_W:o + nc + sf.REFINE_W + 7]
+    ni = pair_ints(ns, nc, cap)
+    sst = carray(abi.i64_ptr(scratch + 8 * nf), ni)[ni - sf.STACK:ni]
+    return sval, tmp, res, sst
+
+
+@njit(cache=True)
+def _surface_groups(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, count):
+    """Each of the ``n`` groups measured on the surfaces, from its deepest leaf pair's contact
+    point; the groups closer than ``below`` are compacted to the front of ``cand``, ``geom``
+    (normal at 0:3, point at 9:12) and ``sval``. Returns their count."""
+    m = 0
+    for i in range(n):
+        g = geom[i]
+        tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
+        ok = sf.local_distance(SA, SB, xf, g[9], g[10], g[11], SURFACE_ITERS, eps, SURFACE_TOL * eps, sst, tmp, res)
+        count[C_SURFACE] += 1
+        if not ok:
+            count[C_FALLBACK] += 1
+            continue
+        if not res[0] < below:
+            continue
+        row = geom[m]
+        for r in range(3):
+            row[r] = res[4 + r]
+            row[9 + r] = res[1 + r]
+        for c in range(4):
+            cand[m, c] = cand[i, c]
+        sval[m] = res[0]
+        m += 1
+    return m
+
+
+@njit(cache=True)
+def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap, scratch,
+                      count):
+    """Surface narrow phase: the distances on the meshes of the deepest of the ``n`` groups by
+    the IST (``_deepest``), and those within ``margin`` as contacts into ``con`` (the deepest,
+    then the most spread, one per point). Returns the count; ``chosen[0]`` indexes the deepest
+    in ``cand``."""
+    sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
+    SA = _surface(E, g1)
+    SB = _surface(E, g2)
+    n = _deepest(E, cand, cval, n)
+    m = _surface_groups(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count)
+    k = spread(geom, 9, sval, m, cap, chosen, dmin)
+    # groups whose descents ended at one point give one contact
+    same2 = (SURFACE_SAME * eps) ** 2
+    kk = 0
+    for j in range(k):
+        i = chosen[j]
+        dup = False
+        for jj in range(kk):
+            q = chosen[jj]
+            d2 = (geom[i, 9] - geom[q, 9]) ** 2 + (geom[i, 10] - geom[q, 10]) ** 2 + (geom[i, 11] - geom[q, 11]) ** 2
+            if d2 <= same2:
+                dup = True
+                break
+        if not dup:
+            chosen[kk] = i
+            kk += 1
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    for j in range(kk):
+        i = chosen[j]
+        g = geom[i]
+        row = out[j]
+        row[0] = sval[i]
+        for r in range(3):
+            row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
+            row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
+            row[7 + r] = 0.0
+    return kk
+
+
+@njit(cache=True)
+def _surface_distance(E, Na, Nb, xf, g1, g2, best, eps, ist, st, sv, cand, cval, geom, pair, cap, scratch, count):
+    """A distance request on the surfaces: of the groups whose leaf pairs are within ε1+ε2 of the
+    IST's minimum ``best`` (the surfaces' closest points lie in one of them), the deepest
+    (``_deepest``) measured on the meshes. Returns the index in ``cand``/``geom`` of the smallest (-1: none), its distance in
+    the first word of the surface scratch's values."""
+    sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
+    prev = ist[I_PREV:I_PREV + 4 * KP].reshape((KP, 4))
+    n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[E_SPLIT], best + eps, prev, 0, cand, cval, pair)
+    count[C_VISITS] += visits
+    if code != tv.OK:
+        return -1
+    n = _deepest(E, cand, cval, n)
+    m = _surface_groups(E, _surface(E, g1), _surface(E, g2), Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res,
+                        sst, count)
+    if m == 0:
+        return -1
+    j = 0
+    for i in range(1, m):
+        if sval[i] < sval[j]:
+            j = i
+    return j
 
 
 @njit(cache=True)

@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from ..geometry import surface as sf
 from ..query import primitive as cp
 from ..query import traverse as tv
 from . import abi
@@ -67,18 +68,21 @@ ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS
     E_QFRCP, E_BXPOS, E_BXQUAT, E_BXIPOS, E_MOCPOS, E_MOCQUAT,  # offsets in mjData
     E_NBODY, E_NMOCAP,
     E_DT_NS,  # the model's timestep in nanoseconds
+    E_NARROW,  # mesh–mesh narrow phase: 0 the leaf spheres, else groups measured on the surfaces per call
+    E_SURF,  # per k: (surface floats address, ints address, vertices, faces, BVH nodes), see geometry.surface
     E_WORDS,
-) = range(49)
+) = range(51)
 
 # ---- counters (racy increments from several threads: statistics only) ----------------------
 (C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT,
  C_REFRESH, C_VISITS, C_GROUPS, C_PRIM_CALLS, C_PRIM_CONTACTS,
  C_STIFF,  # penalty steps whose summed contact stiffness exceeded the explicit stability bound
  C_DISTANCE,  # calls answered with the distance only (mj_geomDistance, distance sensors)
- N_COUNT) = range(17)
+ C_SURFACE,  # contact groups measured on the surfaces (mjist_narrowphase surface)
+ N_COUNT) = range(18)
 COUNTER_NAMES = ("calls", "contact_calls", "contacts", "skipped", "stateless", "no_stack", "bad_pose", "failed",
                  "front_calls", "front_refreshes", "visits", "front_groups", "primitive_calls", "primitive_contacts",
-                 "over_stiffness_budget", "distance_calls")
+                 "over_stiffness_budget", "distance_calls", "surface_groups")
 
 # ---- state slot of one (MjData, pair) ----------------------------------------------------
 KP = 16  # contact groups remembered for next frame
@@ -128,6 +132,7 @@ O_F, O_T, O_N, O_DEPTH, O_VOL, O_TIME, O_VH, O_WH, O_PH, O_QH, O_HOK, PO = _offs
 STACK_RESERVE = 65536
 POSE_W = 44  # two 4x4 poses and the 3x4 relative transform
 PAIR_GEOM_W = 12  # per candidate: normal, the two ball points, contact point (tv.leaf_geometry)
+SURF_F = sf.REFINE_W + 8  # the surface narrow phase: local_distance's temporaries and answer
 PRIM_F = 50  # the primitive path: two poses, transform, the primitive's query point (6)
 PEN_CAP = 64  # contact groups a penalty pair sums at most (the deepest and most spread when more)
 SMALL = 64  # float64 words of the forces' per-call temporaries
@@ -136,14 +141,16 @@ SMALL = 64  # float64 words of the forces' per-call temporaries
 @njit(cache=True, inline="always")
 def pair_floats(ns, nc):
     """float64 words of a pair call: poses, stack values, candidate values, dmin, geometry rows,
-    the stateless slot, the blend accumulator."""
-    return POSE_W + ns + nc * (2 + PAIR_GEOM_W) + FW + tv.BLEND_W
+    the stateless slot, the blend accumulator; then the surface narrow phase's candidate values
+    and temporaries."""
+    return POSE_W + ns + nc * (2 + PAIR_GEOM_W) + FW + tv.BLEND_W + nc + SURF_F
 
 
 @njit(cache=True, inline="always")
 def pair_ints(ns, nc, cap):
-    """int64 words of a pair call: stack pairs, candidates, chosen, closest pair, stateless slot."""
-    return 2 * ns + 4 * nc + cap + 2 + IW
+    """int64 words of a pair call: stack pairs, candidates, chosen, closest pair, stateless slot,
+    the surface queries' stack."""
+    return 2 * ns + 4 * nc + cap + 2 + IW + sf.STACK
 
 
 @njit(cache=True, inline="always")
