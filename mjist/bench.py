@@ -5,7 +5,7 @@ each stage's timings and peak memory are its own): tree builds (``bench_build``)
 against coal (``bench_query``), the seed paper's Figs. 6-9 with backtracking / multipoint
 speedups in and out of contact (``bench_paper``), scaling with mesh size 10k → 200k
 vertices (``bench_scaling``), MuJoCo step time against native hull / mesh-SDF / CoACD
-(``bench_mujoco``), the haptic loop (``bench_haptic``), the occlusion search
+(``bench_mujoco``), a jaw pushed into occlusion on a slide (``bench_slide``), the haptic loop (``bench_haptic``), the occlusion search
 (``bench_occlusion``) and cohorts on Ray (``bench_cohort``). Then writes into the output
 folder ``BENCHMARKS.generated.md`` (the exact command, machine, versions, wall time per stage and every stage's table) and
 ``pareto.png``: run time against error for the IST at each ε against coal's exact distance
@@ -34,6 +34,7 @@ STAGES = {
     "paper": ("bench_paper.py", ["--quick"], [], "dir"),
     "scaling": ("bench_scaling.py", ["--quick"], [], "dir"),
     "mujoco": ("bench_mujoco.py", ["--quick", "--pairs", "bundled"], [], "prefix"),
+    "slide": ("bench_slide.py", ["--max-errors", "default", "--steps", "400"], [], "prefix"),
     "haptic": ("bench_haptic.py", ["--quick"], [], "prefix"),
     "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),
     "cohort": ("bench_cohort.py", ["--patients", "2", "--spacing", "1.0", "--starts", "16", "--max-error", "0.001"], [], "prefix"),
@@ -54,9 +55,13 @@ NOTES = {
               "leaves, and the speed-ups of backtracking and multipoint in and out of contact (Figs. 6–9)."),
     "scaling": ("Scaling with mesh size", "The same motion on remeshed jaws of 10 k to 200 k vertices: IST "
                 "queries against coal."),
-    "mujoco": ("MuJoCo: jaw closure", "The jaw-closure scene with each contact mode: IST (mesh and sdf geoms), "
-               "MuJoCo's convex hull, mesh-SDF and CoACD pieces; step time, where the jaw comes to rest against "
-               "the designed occlusion, and the IST's distances checked against coal's (bound violations)."),
+    "mujoco": ("MuJoCo: jaw closure", "The jaw-closure scene with each contact mode: IST (sphere and surface "
+               "contacts; mesh and sdf geoms), MuJoCo's convex hull, mesh-SDF and CoACD pieces; step time, where the "
+               "jaw comes to rest against the designed occlusion and coal's distance there, and the IST's distances "
+               "checked against coal's (bound violations)."),
+    "slide": ("MuJoCo: a jaw pushed into occlusion", "The CBCT mandible pushed straight up on a slide joint "
+              "against the maxilla: sphere and surface contacts at each tree error and MuJoCo's mesh-SDF; step "
+              "time, and where it rests against coal's first touch along the slide (the exact answer)."),
     "haptic": ("Haptic loop", "Every scripted device path with both penalty laws: loop time (mocap update → "
                "mj_step → force readout), forces, the largest force change per step, and the IST's depth "
                "against coal's deepest triangle-pair penetration."),

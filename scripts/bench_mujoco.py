@@ -1,4 +1,4 @@
-"""MuJoCo step time and contact error: IST (mesh and sdf geoms) vs native hull, mesh-SDF and CoACD.
+"""MuJoCo step time and contact error: IST (spheres, surface; mesh and sdf geoms) vs native hull, mesh-SDF and CoACD.
 
     python scripts/bench_mujoco.py                      # bundled jaws (+ CBCT pair when ../shared is there)
     python scripts/bench_mujoco.py --pairs bundled --quick
@@ -8,7 +8,11 @@ its muscles), one run. Per frame: ``mj_step`` wall time; every ``--every`` frame
 mesh distance from coal at that frame's pose against what the mode reports for the pair
 (IST: ``mj_geomDistance`` with the contact offset added back, i.e. the IST distance d_IST,
 whose interval [d_IST - ε1 - ε2, d_IST] must hold the coal distance; native: its deepest
-contact). Writes ``out/bench_mujoco.{json,md,png}``.
+contact). ``ist-surface`` is ``ist-mesh`` with ``mjist_narrowphase='surface'`` (its distance is
+the meshes' own, still inside that interval). At the end, coal's distance at the rest pose: the
+true gap (> 0) or 0 when the meshes intersect, and how far the hinge rests past the angle where
+coal finds the meshes first touching with the rest's other joints (> 0: closed past it, into the
+maxilla; < 0: resting open of it). Writes ``out/bench_mujoco.{json,md,png}``.
 
 ``native-coacd`` (when ``coacd`` is installed): each jaw replaced by its CoACD convex pieces
 (MuJoCo's documented workaround for non-convex meshes), decomposed once and cached in
@@ -121,10 +125,31 @@ def _coacd_model(scene: Path, threshold: float):
 
 
 
+def _first_touch_hinge(m, probe, q, gmx, gmd, ba, bb) -> float:
+    """The hinge angle (rad) where the meshes first touch with the rest pose's other joints:
+    bisection on coal's collision test within 1° of the rest."""
+    def hits(h):
+        probe.qpos[:] = q
+        probe.qpos[0] = h
+        mujoco.mj_forward(m, probe)
+        return jawmod.coal_collides(ba, geom_pose(probe, gmx), bb, geom_pose(probe, gmd))
+
+    lo, hi = q[0] + np.radians(1.0), q[0] - np.radians(1.0)  # open (apart) .. closed (intersecting)
+    if hits(lo) or not hits(hi):
+        return float("nan")
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if hits(mid) else (mid, hi)
+    return 0.5 * (lo + hi)
+
+
 def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
     if mode == "ist-mesh":
         m, t_compile = _spec_model(scene, "mesh", None)
         h = A.attach(m)
+    elif mode == "ist-surface":
+        m, t_compile = _spec_model(scene, "mesh", None)
+        h = A.attach(m, narrowphase="surface")
     elif mode == "ist-sdf":
         m, t_compile = _spec_model(scene, "sdf", 1)
         h = A.attach(m)
@@ -171,6 +196,10 @@ def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
             err.append({"frame": i, "coal": float(true_d), "coal_hit": bool(hit), "reported": float(rep),
                         "contacts": len(cons)})
     q = d.qpos.copy()
+    probe.qpos[:] = q
+    mujoco.mj_forward(m, probe)  # the rest pose's geoms (d's are the last step's start)
+    rest = jawmod.coal_distance(ba, geom_pose(probe, gmx), bb, geom_pose(probe, gmd))
+    touch = _first_touch_hinge(m, probe, q, gmx, gmd, ba, bb)
     res = {
         "mode": mode, "compile_s": t_compile, "steps": steps,
         "step_us_median": float(np.median(times) * 1e6),
@@ -178,6 +207,8 @@ def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
         "step_us_p90": float(np.percentile(times, 90) * 1e6),
         "step_us_median_closed": float(np.median(times[steps // 2:]) * 1e6),
         "final_hinge_deg": float(np.degrees(q[0])), "final_protrusion_mm": float(q[1] * 1e3), "final_lateral_mm": float(q[2] * 1e3),
+        "final_coal_mm": float(rest * 1e3),
+        "hinge_past_touch_deg": float(np.degrees(touch - q[0])),  # the hinge opens the jaw as it grows
         "error_bound": eps, "offset": offset, "frames": err,
     }
     if mode == "native-coacd":
@@ -188,6 +219,7 @@ def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
         res["abs_err_mm_median"] = float(np.median([abs(e["reported"] - e["coal"]) for e in sep]) * 1e3) if sep else None
         res["abs_err_mm_max"] = float(max(abs(e["reported"] - e["coal"]) for e in sep) * 1e3) if sep else None
         res["hook"] = h.stats()
+        res["surface_build_s"] = h.surface_seconds
         res["trees"] = {k: {"leaves": t.num_leaves, "eps_mm": t.error_bound * 1e3} for k, t in h.trees.items()}
         h.detach()
     else:
@@ -200,7 +232,7 @@ def run_mode(scene, mode, steps, every, coal_pair, coacd_threshold=0.05):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--pairs", default="bundled,real")
-    ap.add_argument("--modes", default="ist-mesh,ist-sdf,native-hull,native-sdf,native-coacd")
+    ap.add_argument("--modes", default="ist-mesh,ist-surface,ist-sdf,native-hull,native-sdf,native-coacd")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--every", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help="200 steps, no native mesh-SDF, CoACD only if already decomposed")
@@ -244,14 +276,16 @@ def main():
     out = Path(a.out)
     os.makedirs(out.parent, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(results, indent=1))
-    lines = ["| pair | mode | compile s | step µs median | mean | once closed | final hinge ° | bound violations / false contacts | |err| median / max mm |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| pair | mode | compile s | step µs median | mean | once closed | final hinge ° | past coal's first touch ° "
+             "| final coal gap mm | bound violations / false contacts | |err| median / max mm |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, case in results["cases"].items():
         for mode, r in case.items():
             viol = r.get("bound_violations", r.get("false_contact_frames"))
             err = f"{r['abs_err_mm_median']:.3f} / {r['abs_err_mm_max']:.3f}" if r.get("abs_err_mm_median") is not None else "–"
             lines.append(f"| {name} | {mode} | {r['compile_s']:.1f} | {r['step_us_median']:.1f} | {r['step_us_mean']:.1f} | {r['step_us_median_closed']:.1f} | "
-                         f"{r['final_hinge_deg']:+.3f} | {viol} | {err} |")
+                         f"{r['final_hinge_deg']:+.3f} | {r['hinge_past_touch_deg']:+.3f} | {r['final_coal_mm']:.3f} | "
+                         f"{viol} | {err} |")
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     import matplotlib
 
