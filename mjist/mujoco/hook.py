@@ -17,8 +17,9 @@ it, ``layout.py`` declares its words), and for a managed pair:
 
 With ``mjist_narrowphase='surface'`` the threshold of 3 is ``margin + ε1 + ε2`` (every leaf
 pair whose surfaces can be within ``margin`` of each other lies in a group below it), and
-each group's distance, point and normal come from the meshes themselves
-(``geometry.surface.local_distance``, started at the group's deepest leaf pair) before 4.
+the distance, point and normal of the deepest ``mjist_surface_groups`` groups come from the
+meshes themselves (``geometry.surface.local_distance``, started at the group's deepest leaf
+pair) before 4.
 
 A distance request (``mj_geomDistance``, distance sensors: ``con`` is not in the MjData's
 arena, see ``distance_request``) skips 2-5: its caller reads only the smallest distance, so it
@@ -260,6 +261,17 @@ def _posed(E, d, g1, g2, Pa, Pb, xf):
     return tv.relative_pose(Pa, Pb, xf)
 
 
+@njit(cache=True, inline="always")
+def _write_row(row, dist, Pa, g):
+    """A contact row of ``con``: ``dist``, then the point (``g[9:12]``) and normal (``g[0:3]``)
+    of A's frame in world coordinates; the frame's other axes are MuJoCo's to complete."""
+    row[0] = dist
+    for r in range(3):
+        row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
+        row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
+        row[7 + r] = 0.0
+
+
 @njit(cache=True)
 def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
     """Contacts of a managed pair into ``con``; returns the count (0..cap)."""
@@ -373,12 +385,7 @@ def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
         if j >= 0 and (sval[j] < 0.0 or not best < sval[j]):
             if not sval[j] < margin:
                 return 0
-            g = geom[j]
-            row[0] = sval[j]
-            for r in range(3):
-                row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
-                row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
-                row[7 + r] = 0.0
+            _write_row(row, sval[j], Pa, geom[j])
             return 1
         if j < 0:
             count[C_FALLBACK] += 1
@@ -388,11 +395,7 @@ def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
         return 0
     tv.leaf_geometry(Na, Nb, xf, pair[0], pair[1], g)
     tv.contact_normal(Na, Nb, xf, pair[0], pair[1], g, E[E_NUP])
-    row[0] = best - offset
-    for r in range(3):
-        row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
-        row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
-        row[7 + r] = 0.0
+    _write_row(row, best - offset, Pa, g)
     return 1
 
 
@@ -539,12 +542,7 @@ def _write_contacts(E, Na, Nb, xf, Pa, cand, cval, chosen, k, geom, thr, offset,
         if E[E_NUP] > 0 and cval[i] < thr:
             count[C_VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP],
                                             bacc, pair, g)
-        row = out[j]
-        row[0] = cval[i] - offset
-        for r in range(3):
-            row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
-            row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
-            row[7 + r] = 0.0
+        _write_row(out[j], cval[i] - offset, Pa, g)
 
 
 @njit(cache=True)
@@ -670,14 +668,7 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
             kk += 1
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
     for j in range(kk):
-        i = chosen[j]
-        g = geom[i]
-        row = out[j]
-        row[0] = sval[i]
-        for r in range(3):
-            row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
-            row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
-            row[7 + r] = 0.0
+        _write_row(out[j], sval[chosen[j]], Pa, geom[chosen[j]])
     return kk
 
 
