@@ -39,7 +39,9 @@ def test_scene_file_is_the_generator_output():
     assert SCENE.read_text() == haptic_jaw_xml("maxilla.obj", "mandible.obj", j["hinge"], np.array(j["mandible_pose"])[:3, 3])
 
 
-@pytest.mark.parametrize("trajectory", ["close", "chewing",  # chewing holds lateral and protrusive moves
+@pytest.mark.parametrize("trajectory", ["close",
+                                        # chewing holds lateral and protrusive moves
+                                        pytest.param("chewing", marks=pytest.mark.slow),
                                         pytest.param("lateral_left", marks=pytest.mark.slow),
                                         pytest.param("protrusion", marks=pytest.mark.slow)])
 def test_forces_against_coal_along_trajectories(scene, trajectory):
@@ -150,6 +152,7 @@ def test_force_continuity_along_the_slow_press(scene):
     assert np.all(jump <= bound + 1e-12), float(np.max(jump - bound))
 
 
+@pytest.mark.slow  # a long hold: the CI set keeps the closing trajectory against coal
 def test_hold_in_contact_for_60_seconds_is_stable(scene):
     """Handle held still pressing the teeth for 60 simulated seconds: no NaN, no energy growth."""
     model, h, gmx, gmd, bvh = scene

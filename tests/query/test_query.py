@@ -332,6 +332,7 @@ def test_blended_contact_normal_turns_continuously_where_the_deepest_pair_jumps(
     assert np.allclose(blended[0], deepest[0])  # one pair alone in the window: its own normal
 
 
+@pytest.mark.slow  # 50 s of volume sweeps
 def test_penetration_volume_is_zero_apart_continuous_and_below_the_true_overlap():
     ma, ta, ba = shape("torus")
     mb, tb, bb = shape("bumpy")
