@@ -7,6 +7,18 @@ ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"
 
 
+def pytest_configure(config):
+    """With pytest-xdist workers, compile the shared kernels once in the controller first
+    (``_warm``); each worker then loads them from numba's cache."""
+    if getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput"):
+        import sys
+
+        sys.path.insert(0, str(Path(__file__).parent))
+        import _warm
+
+        _warm.compile_kernels()
+
+
 @pytest.fixture(scope="session")
 def cache(tmp_path_factory):
     """One tree cache for the session: the jaw trees are built once for every MuJoCo test."""

@@ -95,6 +95,7 @@ def _coal_depth(bvh, Pmx, Pmd):
     return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
 
 
+@pytest.mark.slow  # CI keeps the closing trajectory against coal and the slow press's continuity
 def test_press_force_grows_with_coal_penetration(scene):
     """The mandible pushed straight up into the maxilla in 0.1 mm steps: |F| and coal's depth both grow."""
     model, h, gmx, gmd, bvh = scene

@@ -48,6 +48,7 @@ def test_same_seed_same_ranking_and_threads_do_not_matter(cache):
     assert [x["pos"] for x in a["landscape"]] == [x["pos"] for x in b["landscape"]]
 
 
+@pytest.mark.slow  # CI runs the search itself in the other tests of this file
 def test_cli_writes_candidates_and_plots(cache, tmp_path, monkeypatch):
     monkeypatch.setenv("MJIST_CACHE", cache)
     assert cli.main(["occlusion", "--starts", "4", "--threads", "2", "--out-dir", str(tmp_path), "-q"]) == 0
