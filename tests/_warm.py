@@ -34,6 +34,9 @@ def compile_kernels():
         q.distance(np.eye(4), pose)
         q.contacts(np.eye(4), pose)
         q.penetration_volume(np.eye(4), pose)
+        qs = mjist.Query(tree, tree, meshes=((mesh.vertices, mesh.faces),) * 2)
+        qs.distance(np.eye(4), pose)
+        qs.contacts(np.eye(4), pose)
         for settings in ({}, {"narrowphase": "surface"}, {"mode": "penalty", "stiffness": 100.0}):
             model = mujoco.MjModel.from_xml_string(XML.format(ball=ball))
             handle = mjist.attach(model, cache_dir=tmp, max_error=0.001, **settings)

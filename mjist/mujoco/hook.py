@@ -18,8 +18,8 @@ it, ``layout.py`` declares its words), and for a managed pair:
 With ``mjist_narrowphase='surface'`` the threshold of 3 is ``margin + ε1 + ε2`` (every leaf
 pair whose surfaces can be within ``margin`` of each other lies in a group below it), and
 the distance, point and normal of the deepest ``mjist_surface_groups`` groups come from the
-meshes themselves (``geometry.surface.local_distance``, started at the group's deepest leaf
-pair) before 4.
+meshes themselves (``query.narrow``: ``geometry.surface.local_distance`` started at the
+group's deepest leaf pair) before 4.
 
 A distance request (``mj_geomDistance``, distance sensors: ``con`` is not in the MjData's
 arena, see ``distance_request``) skips 2-5: its caller reads only the smallest distance, so it
@@ -39,6 +39,7 @@ import numpy as np
 from numba import carray, cfunc, njit, types
 
 from ..geometry import surface as sf
+from ..query import narrow as nw
 from ..query import primitive as cp
 from ..query import traverse as tv
 from ..query.select import spread
@@ -136,13 +137,6 @@ from .layout import (
 )
 
 SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of ε1+ε2, x last step's motion
-# surface narrow phase: surface queries of A per contact group at most (more reach the surfaces'
-# closest points from farther starts, i.e. coarser trees, at a linear cost) ...
-SURFACE_ITERS = 10
-# ... stopping once a step would move less than this fraction of ε1+ε2
-SURFACE_TOL = 1e-3
-# contacts closer than this fraction of ε1+ε2 are one: groups whose descents met at one point
-SURFACE_SAME = 1e-2
 
 
 @njit(cache=True, inline="always")
@@ -576,23 +570,6 @@ def _surface(E, g):
     return sf.unpack(fl, it, nv, nf, m)
 
 
-@njit(cache=True)
-def _deepest(E, cand, cval, n):
-    """Moves the ``E[E_NARROW]`` groups with the smallest IST distances to the front of ``cand``
-    (and ``cval``), in order, and returns their count; ties keep the traversal's order."""
-    k = min(n, E[E_NARROW])
-    for j in range(k):
-        b = j
-        for i in range(j + 1, n):
-            if cval[i] < cval[b]:
-                b = i
-        if b != j:
-            cval[j], cval[b] = cval[b], cval[j]
-            for c in range(4):
-                cand[j, c], cand[b, c] = cand[b, c], cand[j, c]
-    return k
-
-
 @njit(cache=True, inline="always")
 def _surface_scratch(E, scratch, cap):
     """The surface narrow phase's part of a pair call's scratch (the tails of
@@ -612,29 +589,11 @@ def _surface_scratch(E, scratch, cap):
 
 
 @njit(cache=True)
-def _surface_groups(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, count):
-    """Each of the ``n`` groups measured on the surfaces, from its deepest leaf pair's contact
-    point; the groups closer than ``below`` are compacted to the front of ``cand``, ``geom``
-    (normal at 0:3, point at 9:12) and ``sval``. Returns their count."""
-    m = 0
-    for i in range(n):
-        g = geom[i]
-        tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
-        ok = sf.local_distance(SA, SB, xf, g[9], g[10], g[11], SURFACE_ITERS, eps, SURFACE_TOL * eps, sst, tmp, res)
-        count[C_SURFACE] += 1
-        if not ok:
-            count[C_FALLBACK] += 1
-            continue
-        if not res[0] < below:
-            continue
-        row = geom[m]
-        for r in range(3):
-            row[r] = res[4 + r]
-            row[9 + r] = res[1 + r]
-        for c in range(4):
-            cand[m, c] = cand[i, c]
-        sval[m] = res[0]
-        m += 1
+def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, count):
+    """``narrow.measure`` with the hook's counters."""
+    m, failed = nw.measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst)
+    count[C_SURFACE] += n
+    count[C_FALLBACK] += failed
     return m
 
 
@@ -642,30 +601,16 @@ def _surface_groups(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp,
 def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap, scratch,
                       count):
     """Surface narrow phase: the distances on the meshes of the deepest of the ``n`` groups by
-    the IST (``_deepest``), and those within ``margin`` as contacts into ``con`` (the deepest,
+    the IST (``narrow.deepest``), and those within ``margin`` as contacts into ``con`` (the deepest,
     then the most spread, one per point). Returns the count; ``chosen[0]`` indexes the deepest
     in ``cand``."""
     sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
     SA = _surface(E, g1)
     SB = _surface(E, g2)
-    n = _deepest(E, cand, cval, n)
-    m = _surface_groups(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count)
+    n = nw.deepest(cand, cval, n, E[E_NARROW])
+    m = _measure(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count)
     k = spread(geom, 9, sval, m, cap, chosen, dmin)
-    # groups whose descents ended at one point give one contact
-    same2 = (SURFACE_SAME * eps) ** 2
-    kk = 0
-    for j in range(k):
-        i = chosen[j]
-        dup = False
-        for jj in range(kk):
-            q = chosen[jj]
-            d2 = (geom[i, 9] - geom[q, 9]) ** 2 + (geom[i, 10] - geom[q, 10]) ** 2 + (geom[i, 11] - geom[q, 11]) ** 2
-            if d2 <= same2:
-                dup = True
-                break
-        if not dup:
-            chosen[kk] = i
-            kk += 1
+    kk = nw.distinct(geom, chosen, k, eps)  # groups whose descents ended at one point give one contact
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
     for j in range(kk):
         _write_row(out[j], sval[chosen[j]], Pa, geom[chosen[j]])
@@ -676,7 +621,7 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
 def _surface_distance(E, Na, Nb, xf, g1, g2, best, eps, ist, st, sv, cand, cval, geom, pair, cap, scratch, count):
     """A distance request on the surfaces: of the groups whose leaf pairs are within ε1+ε2 of the
     IST's minimum ``best`` (the surfaces' closest points lie in one of them), the deepest
-    (``_deepest``) measured on the meshes. Returns the index in ``cand``/``geom`` of the smallest (-1: none), its distance in
+    (``narrow.deepest``) measured on the meshes. Returns the index in ``cand``/``geom`` of the smallest (-1: none), its distance in
     the first word of the surface scratch's values."""
     sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
     prev = ist[I_PREV:I_PREV + 4 * KP].reshape((KP, 4))
@@ -684,16 +629,10 @@ def _surface_distance(E, Na, Nb, xf, g1, g2, best, eps, ist, st, sv, cand, cval,
     count[C_VISITS] += visits
     if code != tv.OK:
         return -1
-    n = _deepest(E, cand, cval, n)
-    m = _surface_groups(E, _surface(E, g1), _surface(E, g2), Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res,
-                        sst, count)
-    if m == 0:
-        return -1
-    j = 0
-    for i in range(1, m):
-        if sval[i] < sval[j]:
-            j = i
-    return j
+    n = nw.deepest(cand, cval, n, E[E_NARROW])
+    m = _measure(E, _surface(E, g1), _surface(E, g2), Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res, sst,
+                 count)
+    return nw.smallest(sval, m)
 
 
 @njit(cache=True)

@@ -6,6 +6,11 @@ lie inside the meshes and every surface point is within ε of them,
 
     true distance ∈ [distance - (ε_A + ε_B), distance].
 
+Given the meshes the trees were built from (``Query(a, b, meshes=(mesh_a, mesh_b))``),
+``distance`` and ``contacts`` measure the IST's nearest contact groups on the meshes
+themselves (``narrow``): distances, points and normals of the true surfaces, and a tighter
+interval for the distance.
+
 One numba entry point per call does everything (pose check, relative pose, motion-bound
 skip, traversal, world-frame output) on arrays the ``Query`` owns, so a query allocates
 nothing in the kernel and pays the Python dispatch once.
@@ -17,11 +22,15 @@ import math
 import numpy as np
 from numba import njit
 
+from ..geometry import surface as sf
 from ..tree import InnerSphereTree
+from . import narrow as nw
 from . import traverse as tv
+from .select import spread
 
 METHODS = {"distance": 0, "backtracking": 1, "multipoint": 2}
 CANDIDATES = 256  # multipoint groups kept per query (the deepest, if more are found)
+NARROWPHASES = ("spheres", "surface")
 
 # ref (coherence) layout: xf at the last full distance query (12), its IST distance, valid
 _REF_D = 12
@@ -80,6 +89,22 @@ def _distance_kernel(Na, Nb, Pa, Pb, method, skip, tol, eps, xf, ref, st, sv, pa
 
 
 @njit(cache=True)
+def _write_contacts(Pa, geom, val, cand, chosen, k, pos, nrm, dep, ids):
+    """The ``k`` contacts ``chosen`` (rows of ``geom``, ``cand``; distance ``val``, A's frame)
+    into the world-frame outputs."""
+    for j in range(k):
+        i = chosen[j]
+        g = geom[i]
+        _world_point(Pa, g[9], g[10], g[11], pos[j], 0)
+        _world_vec(Pa, g[0], g[1], g[2], nrm[j], 0)
+        dep[j] = -val[i]
+        ids[j, 0] = cand[i, 2]
+        ids[j, 1] = cand[i, 3]
+        ids[j, 2] = cand[i, 0]
+        ids[j, 3] = cand[i, 1]
+
+
+@njit(cache=True)
 def _contacts_kernel(
     Na, Nb, Pa, Pb, method, split_depth, margin, k_max,
     xf, st, sv, pair, prev, n_prev, cand, cval, chosen, geom, dmin, pos, nrm, dep, ids, info,
@@ -108,16 +133,7 @@ def _contacts_kernel(
         pair[1] = -1
         return code
     m = tv.select_spread(Na, Nb, xf, cand, cval, n, k_max, chosen, geom, dmin)
-    for j in range(m):
-        i = chosen[j]
-        g = geom[i]
-        _world_point(Pa, g[9], g[10], g[11], pos[j], 0)
-        _world_vec(Pa, g[0], g[1], g[2], nrm[j], 0)
-        dep[j] = -cval[i]
-        ids[j, 0] = cand[i, 2]
-        ids[j, 1] = cand[i, 3]
-        ids[j, 2] = cand[i, 0]
-        ids[j, 3] = cand[i, 1]
+    _write_contacts(Pa, geom, cval, cand, chosen, m, pos, nrm, dep, ids)
     # coherence: every candidate group seeds next frame's search of that group
     for i in range(n):
         for c in range(4):
@@ -157,6 +173,58 @@ def _penetration_kernel(Na, Nb, Pa, Pb, xf, st, sv, acc, pair, out):
 
 
 @njit(cache=True)
+def _surface_distance_kernel(Na, Nb, SA, SB, Pa, xf, best, eps, split_depth, k_groups, st, sv, pair, cand, cval, geom,
+                             sval, tmp, res, sst, out):
+    """The surfaces' distance near the IST's minimum ``best`` (``xf`` already posed): the deepest
+    ``k_groups`` groups within ``best + eps`` (where the surfaces' closest points lie) measured
+    on the meshes. out: smallest value, point on A (3), point on B (3), normal A→B (3), all
+    world; returns the number of groups measured (0: none, ``out`` untouched) or an error code."""
+    n, code, _ = tv.multipoint(Na, Nb, xf, st, sv, split_depth, best + eps, cand, 0, cand, cval, pair)  # no seeds
+    if code != tv.OK:
+        return code
+    n = nw.deepest(cand, cval, n, k_groups)
+    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res, sst)
+    j = nw.smallest(sval, m)
+    if j < 0:
+        return 0
+    g = geom[j]
+    h = 0.5 * sval[j]  # the point is midway between A's point and B's, along the normal
+    out[0] = sval[j]
+    _world_point(Pa, g[9] - h * g[0], g[10] - h * g[1], g[11] - h * g[2], out, 1)
+    _world_point(Pa, g[9] + h * g[0], g[10] + h * g[1], g[11] + h * g[2], out, 4)
+    _world_vec(Pa, g[0], g[1], g[2], out, 7)
+    return m
+
+
+@njit(cache=True)
+def _surface_contacts_kernel(
+    Na, Nb, SA, SB, Pa, Pb, split_depth, margin, eps, k_groups, k_max,
+    xf, st, sv, pair, prev, n_prev, cand, cval, chosen, geom, dmin, sval, tmp, res, sst, pos, nrm, dep, ids, info,
+):
+    """Surface contacts into ``pos, nrm, dep, ids`` (world frame): the groups below
+    ``margin + eps`` by the IST, the deepest ``k_groups`` measured on the meshes, those below
+    ``margin`` kept (deepest, then spread, one per point). ``info``: count, groups, visits."""
+    if not tv.relative_pose(Pa, Pb, xf):
+        return tv.BAD_POSE
+    n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, split_depth, margin + eps, prev, n_prev[0], cand, cval, pair)
+    if code != tv.OK:
+        n_prev[0] = 0
+        return code
+    for i in range(n):  # every group seeds next frame's search
+        for c in range(4):
+            prev[i, c] = cand[i, c]
+    n_prev[0] = n
+    info[1] = n
+    info[2] = visits
+    k = nw.deepest(cand, cval, n, k_groups)
+    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, k, margin, eps, geom, sval, tmp, res, sst)
+    k = nw.distinct(geom, chosen, spread(geom, 9, sval, m, k_max, chosen, dmin), eps)
+    _write_contacts(Pa, geom, sval, cand, chosen, k, pos, nrm, dep, ids)
+    info[0] = k
+    return tv.OK
+
+
+@njit(cache=True)
 def _distance_batch(Na, Nb, Pa, Pb, method, skip, tol, eps, xf, ref, st, sv, pair, geom, out, res):
     """Replay frames ``k``: ``res[k] = distance, lower bound, visits, code`` (no Python per frame)."""
     for k in range(Pa.shape[0]):
@@ -173,13 +241,22 @@ class DistanceResult:
     Attributes
     ----------
     distance : float
-        IST distance (≥ 0, 0 when spheres overlap); never below the true mesh distance.
+        IST distance (≥ 0, 0 when spheres overlap); never below the true mesh distance. With
+        ``narrowphase='surface'``, the smaller of it and the surfaces' measured distance (a
+        distance between two surface points, so never below the true one either).
     error_bound : float
         The true distance lies in ``[distance - error_bound, distance]``.
     point_a, point_b : ndarray (3,)
-        World points on the two closest (or overlapping) leaf spheres.
+        World points on the two closest (or overlapping) leaf spheres; on the two meshes when
+        the surface measurement gave the distance.
     colliding : bool
-        Leaf spheres overlap, so the meshes certainly intersect.
+        Leaf spheres overlap, or (``'surface'``) a point of B's surface lies inside A: the
+        meshes intersect.
+    depth : float
+        ``'surface'``: how deep B's deepest point found lies inside A when colliding, else 0
+        (measured, not certified: a deeper point can exist). NaN with ``'spheres'``.
+    narrowphase : str
+        ``'spheres'`` or ``'surface'``: what the answer was measured on.
     skipped : bool
         Motion-bound skip: no traversal ran; ``distance`` is the last frame's closest pair
         re-evaluated, and ``error_bound`` widened by the motion so the interval stays true.
@@ -187,7 +264,8 @@ class DistanceResult:
         Node pairs visited by the traversal (0 when skipped).
     """
 
-    __slots__ = ("distance", "error_bound", "point_a", "point_b", "colliding", "skipped", "visits", "leaf_pair")
+    __slots__ = ("distance", "error_bound", "point_a", "point_b", "colliding", "depth", "narrowphase", "skipped", "visits",
+                 "leaf_pair")
 
     def __repr__(self):
         return (
@@ -203,20 +281,28 @@ class ContactResult:
     ----------
     positions : ndarray (k, 3)
         World contact points: middle of the two leaf balls' common chord on their centre line
-        (inside both balls when they overlap).
+        (inside both balls when they overlap). ``'surface'``: midway between a point of B's
+        surface and its closest point on A.
     normals : ndarray (k, 3)
-        Unit normals from A to B (centre of A's leaf to centre of B's leaf).
+        Unit normals from A to B (centre of A's leaf to centre of B's leaf; ``'surface'``: A's
+        outward direction at the contact).
     depths : ndarray (k,)
         Leaf sphere overlap depths (≥ 0; down to ``-margin`` when a margin was asked).
+        ``'surface'``: the depth of that point of B inside A (negative: its distance outside).
     leaf_pairs : ndarray (k, 2)
         Node ids of the two leaves; ``groups (k, 2)`` their ancestors at ``split_depth``.
     error_bound : float
-        ε_A + ε_B: a contact's depth is within it of the meshes' local penetration.
+        ε_A + ε_B: a sphere contact's depth is within it of the meshes' local penetration. A
+        surface contact's depth is exact at its point; ``error_bound`` is then the margin the
+        group search adds so that no place closer than ``margin`` is missed.
     candidates : int
-        Separate groups in contact before selection (≥ count).
+        Separate groups below the threshold before selection (≥ count).
+    narrowphase : str
+        ``'spheres'`` or ``'surface'``.
     """
 
-    __slots__ = ("positions", "normals", "depths", "leaf_pairs", "groups", "count", "candidates", "error_bound", "visits")
+    __slots__ = ("positions", "normals", "depths", "leaf_pairs", "groups", "count", "candidates", "error_bound", "visits",
+                 "narrowphase")
 
     def __repr__(self):
         return f"ContactResult(count={self.count}, candidates={self.candidates}, visits={self.visits})"
@@ -266,6 +352,14 @@ class Query:
         Trees in the same length unit (their poses' translations use it too).
     max_contacts : int
         Capacity of ``contacts`` (default 4: MuJoCo's mesh-mesh cap).
+    meshes : (mesh_a, mesh_b), optional
+        The meshes the trees were built from (anything ``mjist.build`` takes: path, trimesh,
+        ``(vertices, faces)``, ``mjist.Mesh``), checked against the trees' content hashes.
+        With them ``distance`` and ``contacts`` default to ``narrowphase='surface'``:
+        the IST finds where the surfaces can be close, the meshes say how far.
+    surface_groups : int
+        Contact groups measured on the meshes per call, the deepest by the IST first; each
+        costs tens of µs on a 200 k-face pair (docs/mujoco.md).
 
     Notes
     -----
@@ -274,10 +368,16 @@ class Query:
     query (``skip=True``). Use one ``Query`` per pair of objects; it is not thread safe.
     """
 
-    def __init__(self, tree_a: InnerSphereTree, tree_b: InnerSphereTree, *, max_contacts: int = 4):
+    def __init__(self, tree_a: InnerSphereTree, tree_b: InnerSphereTree, *, max_contacts: int = 4, meshes=None,
+                 surface_groups: int = 8):
         for name, t in (("tree_a", tree_a), ("tree_b", tree_b)):
             if not isinstance(t, InnerSphereTree):
                 raise TypeError(f"{name} must be an mjist.InnerSphereTree (from mjist.build or mjist.load_tree), got {type(t).__name__}")
+        if not 1 <= int(surface_groups) <= CANDIDATES:
+            raise ValueError(f"surface_groups={surface_groups} must be between 1 and {CANDIDATES}")
+        self.surface_groups = int(surface_groups)
+        self._packed = None if meshes is None else _surfaces(meshes, (tree_a, tree_b))
+        self.surfaces = None if meshes is None else tuple(p.views() for p in self._packed)
         self.tree_a = tree_a
         self.tree_b = tree_b
         self.error_bound = float(tree_a.error_bound + tree_b.error_bound)
@@ -291,6 +391,7 @@ class Query:
         self._pair = np.full(2, -1, np.int64)  # distance coherence
         self._cpair = np.full(2, -1, np.int64)  # single-point contact coherence
         self._ppair = np.full(2, -1, np.int64)  # scratch of the volume traversal
+        self._mpair = np.full(2, -1, np.int64)  # scratch of the surface distance's group search
         self._geom = np.zeros((CANDIDATES, 12))
         self._dout = np.zeros(9)
         self._cand = np.zeros((CANDIDATES, 4), np.int64)
@@ -301,7 +402,21 @@ class Query:
         self._info = np.zeros(3, np.int64)
         self._acc = np.zeros(8)
         self._pout = np.zeros(10)
+        self._sval = np.zeros(CANDIDATES)
+        self._stmp = np.zeros(sf.REFINE_W)
+        self._sres = np.zeros(7)
+        self._sst = np.zeros(sf.STACK, np.int64)
+        self._sout = np.zeros(10)
         self._resize_contacts(max_contacts)
+
+    def _narrow(self, narrowphase):
+        if narrowphase is None:
+            return "spheres" if self.surfaces is None else "surface"
+        if narrowphase not in NARROWPHASES:
+            raise ValueError(f"narrowphase must be 'spheres' or 'surface', got {narrowphase!r}")
+        if narrowphase == "surface" and self.surfaces is None:
+            raise ValueError("narrowphase='surface' needs the meshes: Query(tree_a, tree_b, meshes=(mesh_a, mesh_b))")
+        return narrowphase
 
     def _resize_contacts(self, k):
         self._k = k
@@ -326,7 +441,7 @@ class Query:
             raise RuntimeError("IST traversal stack overflow: the trees' depth arrays are inconsistent")
 
     def distance(self, pose_a, pose_b, *, method: str = "backtracking", skip: bool = False,
-                 tolerance: float = 0.0) -> DistanceResult:
+                 tolerance: float = 0.0, narrowphase: str | None = None) -> DistanceResult:
         """Distance between the two trees' sphere unions at the given poses.
 
         Parameters
@@ -342,9 +457,19 @@ class Query:
             Approximate traversal: prune pairs that cannot beat the best so far by more than
             ``tolerance`` (mesh units). ``error_bound`` grows by at most ``tolerance``; a
             fraction of ε costs little accuracy and saves much of the traversal.
+        narrowphase : {'spheres', 'surface'}, optional
+            'surface' (the default when the ``Query`` has the meshes) measures the groups of
+            leaf pairs within ε_A + ε_B of the IST's minimum on the meshes (the surfaces'
+            closest points lie in one of them) and answers the smallest distance found when
+            it is below the IST's. The interval keeps the IST's certified lower end and gets
+            this measured upper end, so it narrows by how far the surfaces lie outside the
+            spheres; when B's surface is found inside A the meshes intersect: distance 0,
+            error bound 0, ``depth`` the depth found. A motion-bound skip (``skip=True``)
+            answers on the spheres.
         """
         if not (math.isfinite(tolerance) and tolerance >= 0):
             raise ValueError(f"tolerance must be finite and ≥ 0, got {tolerance}")
+        narrow = self._narrow(narrowphase)
         m = METHODS.get(method, -1)
         if m not in (0, 1):
             raise ValueError(f"method must be 'distance' or 'backtracking', got {method!r}")
@@ -363,11 +488,43 @@ class Query:
         r.colliding = (not r.skipped) and out[0] == 0.0
         r.visits = int(out[8])
         r.leaf_pair = (int(self._pair[0]), int(self._pair[1]))
+        r.narrowphase = "spheres"
+        r.depth = math.nan
+        if narrow == "surface" and not r.skipped:
+            self._surface_distance(r, _pose(pose_a, "pose_a"), float(out[1]))
         return r
+
+    def _surface_distance(self, r, Pa, lower):
+        """Refines ``r`` on the meshes; ``lower``: the IST distance's certified lower end."""
+        SA, SB = self.surfaces
+        o = self._sout
+        code = _surface_distance_kernel(
+            self.Na, self.Nb, SA, SB, Pa, self._xf, r.distance, self.error_bound, 3, self.surface_groups,
+            self._st, self._sv, self._mpair, self._cand, self._cval, self._geom, self._sval, self._stmp, self._sres,
+            self._sst, o,
+        )
+        self._check(code)
+        r.narrowphase = "surface"
+        r.depth = 0.0
+        if code == 0:  # no surface query answered: the spheres' answer stands
+            return
+        if o[0] < 0.0:
+            r.distance = 0.0
+            r.error_bound = 0.0
+            r.colliding = True
+            r.depth = float(-o[0])
+        elif o[0] < r.distance:
+            r.distance = float(o[0])
+            r.error_bound = r.distance - max(lower - self.error_bound, 0.0)
+        else:
+            return
+        r.point_a = o[1:4].copy()
+        r.point_b = o[4:7].copy()
 
     def distance_batch(self, poses_a, poses_b, *, method: str = "backtracking", skip: bool = False,
                        tolerance: float = 0.0) -> dict:
-        """``distance`` over a sequence of frames in one kernel call (coherence carries over).
+        """``distance`` over a sequence of frames in one kernel call (coherence carries over), on
+        the spheres.
 
         Parameters
         ----------
@@ -409,7 +566,7 @@ class Query:
         }
 
     def contacts(self, pose_a, pose_b, *, max_contacts: int | None = None, split_depth: int = 3,
-                 margin: float = 0.0, method: str = "multipoint") -> ContactResult:
+                 margin: float = 0.0, method: str = "multipoint", narrowphase: str | None = None) -> ContactResult:
         """Contacts between the two trees: leaf-sphere pairs closer than ``margin`` (default: overlapping).
 
         Parameters
@@ -425,10 +582,20 @@ class Query:
         method : {'multipoint', 'backtracking', 'distance'}
             'multipoint' reuses last frame's contact groups to seed this frame's search;
             the other two return the single deepest pair.
+        narrowphase : {'spheres', 'surface'}, optional
+            'surface' (the default when the ``Query`` has the meshes; 'multipoint' only)
+            searches the groups within ``margin + ε_A + ε_B`` (so no place where the surfaces
+            are within ``margin`` is missed), measures the ``surface_groups`` deepest on the
+            meshes and returns those closer than ``margin``: depth, point and normal of the
+            true surfaces.
         """
         m = METHODS.get(method, -1)
         if m < 0:
             raise ValueError(f"method must be 'multipoint', 'backtracking' or 'distance', got {method!r}")
+        narrow = self._narrow(narrowphase)
+        if narrow == "surface" and m != 2:
+            raise ValueError(f"narrowphase='surface' measures the contact groups of method='multipoint', got {method!r}: "
+                             "use method='multipoint' or narrowphase='spheres'")
         k = self._k if max_contacts is None else int(max_contacts)
         if k < 1:
             raise ValueError(f"max_contacts must be ≥ 1, got {max_contacts}")
@@ -438,12 +605,21 @@ class Query:
             raise ValueError(f"margin must be finite and ≥ 0, got {margin}")
         if k != self._k:
             self._resize_contacts(k)
-        code = _contacts_kernel(
-            self.Na, self.Nb, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
-            m, int(split_depth), float(margin), k,
-            self._xf, self._st, self._sv, self._cpair, self._prev, self._n_prev, self._cand, self._cval,
-            self._chosen, self._geom, self._dmin, self._pos, self._nrm, self._dep, self._ids, self._info,
-        )
+        if narrow == "surface":
+            SA, SB = self.surfaces
+            code = _surface_contacts_kernel(
+                self.Na, self.Nb, SA, SB, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"), int(split_depth),
+                float(margin), self.error_bound, self.surface_groups, k, self._xf, self._st, self._sv, self._cpair,
+                self._prev, self._n_prev, self._cand, self._cval, self._chosen, self._geom, self._dmin, self._sval,
+                self._stmp, self._sres, self._sst, self._pos, self._nrm, self._dep, self._ids, self._info,
+            )
+        else:
+            code = _contacts_kernel(
+                self.Na, self.Nb, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
+                m, int(split_depth), float(margin), k,
+                self._xf, self._st, self._sv, self._cpair, self._prev, self._n_prev, self._cand, self._cval,
+                self._chosen, self._geom, self._dmin, self._pos, self._nrm, self._dep, self._ids, self._info,
+            )
         self._check(code)
         n = int(self._info[0])
         r = ContactResult()
@@ -456,6 +632,7 @@ class Query:
         r.candidates = int(self._info[1])
         r.visits = int(self._info[2])
         r.error_bound = self.error_bound
+        r.narrowphase = narrow
         return r
 
     def penetration_volume(self, pose_a, pose_b) -> PenetrationResult:
@@ -474,3 +651,28 @@ class Query:
         r.visits = int(out[8])
         r.force_magnitude = float(out[9])
         return r
+
+
+def _surfaces(meshes, trees):
+    """The two meshes packed for the surface narrow phase, each checked against its tree."""
+    from ..errors import MeshError
+    from ..geometry.mesh import load_mesh
+
+    try:
+        mesh_a, mesh_b = meshes
+    except (TypeError, ValueError):
+        raise ValueError("meshes must be a pair (mesh_a, mesh_b): the meshes the two trees were built from") from None
+    out = []
+    for name, mesh, tree in (("a", mesh_a, trees[0]), ("b", mesh_b, trees[1])):
+        if tree.params.get("spheres"):
+            raise ValueError(f"tree_{name} is a sphere set (mjist.sphere_tree), not a mesh's tree: it has no surface to "
+                             "measure; leave meshes unset")
+        try:
+            m = load_mesh(mesh, repair=bool(tree.params.get("repair", False)))
+        except MeshError as exc:
+            raise MeshError(f"mesh_{name}: {exc}") from None
+        if m.content_hash != tree.mesh_hash:
+            raise ValueError(f"mesh_{name} is not the mesh tree_{name} was built from (content hashes differ): pass the "
+                             "mesh given to mjist.build, in the same units and frame")
+        out.append(sf.build_surface(m.vertices, m.faces))
+    return out
