@@ -3,7 +3,8 @@
     python scripts/bench_haptic.py                 # bundled jaws (+ the CBCT pair when ../shared is there)
     python scripts/bench_haptic.py --quick
 
-For each jaw pair, penalty law (``contacts``, ``volume``) and tree resolution (``--max-errors``),
+For each jaw pair, penalty law (``contacts``; ``surface``: the contacts law on depths measured on
+the meshes, ``mjist_narrowphase='surface'``; ``volume``) and tree resolution (``--max-errors``),
 every scripted trajectory is run through ``mjist.jaw.haptic.run`` (mocap update → ``mj_step`` →
 force readout, timed per step). Every ``--every`` steps in contact, coal's exact collision
 with contacts gives the deepest triangle-pair penetration δ_coal at that pose; the reference
@@ -44,7 +45,10 @@ def coal_depth(ba, Pa, bb, Pb) -> float:
 
 
 def run_case(scene, law, max_error, trajectories, every, steps_cap):
-    model, h = A.load_model(scene, penalty=law, max_error=max_error, progress=True)
+    # 'surface': the contacts law on depths measured on the meshes (mjist_narrowphase='surface')
+    narrow = "surface" if law == "surface" else "spheres"
+    model, h = A.load_model(scene, penalty="contacts" if law == "surface" else law, narrowphase=narrow,
+                            max_error=max_error, progress=True)
     gmx, gmd = h.geoms["maxilla"], h.geoms["mandible"]
     ba, bb = (jawmod.coal_bvh(*mesh_of(model, g)) for g in (gmx, gmd))
     d0 = mujoco.MjData(model)
@@ -90,7 +94,8 @@ def run_case(scene, law, max_error, trajectories, every, steps_cap):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--pairs", default="bundled,real")
-    ap.add_argument("--laws", default="contacts,volume")
+    ap.add_argument("--laws", default="contacts,surface,volume",
+                    help="penalty laws; 'surface' is the contacts law on depths measured on the meshes")
     ap.add_argument("--max-errors", default="default,0.0003,0.0005",
                     help="metres per tree; 'default' = the scene's; a value equal to the scene's is run once")
     ap.add_argument("--trajectories", default="close,lateral_left,lateral_right,protrusion,chewing")

@@ -263,6 +263,34 @@ def _on_b(SB, xf, x, y, z, stack, within, b):
 
 
 @njit(cache=True)
+def _depths(SA, SB, xf, x, y, z, within, stack, out):
+    """The point's depths inside A and inside B (negative outside; NaN when a query fails)."""
+    if not _near(SA, x, y, z, stack, within, out):
+        return np.nan, np.nan
+    da = -out[0]
+    bx, by, bz = _to_b(xf, x, y, z)
+    if not _near(SB, bx, by, bz, stack, within, out):
+        return np.nan, np.nan
+    return da, -out[0]
+
+
+@njit(cache=True)
+def overlap_depth(SA, SB, xf, x, y, z, nx, ny, nz, within, stack, out):
+    """How thick the two solids' overlap is at the point ``(x, y, z)`` along the unit direction
+    ``n`` from A to B (A's frame; ``xf`` is B's pose in A's frame): the point moves along ``n``
+    to where its depths in A and in B would be equal if both surfaces were planes across ``n``
+    (by at most ``within``), and the answer is twice the smaller of its depths there. Negative
+    when that point is outside either solid, positive only where the solids truly overlap (the
+    point is inside both); equal to the overlap's thickness between two planes across ``n``.
+    Continuous in the point, ``n`` and B's pose. NaN when a surface query fails. ``within``: a
+    distance both surfaces are expected within (it prunes the searches). ``out``: 7 floats."""
+    da, db = _depths(SA, SB, xf, x, y, z, within, stack, out)
+    t = max(-within, min(within, 0.5 * (da - db)))  # deeper in A than in B: towards B
+    da, db = _depths(SA, SB, xf, x + t * nx, y + t * ny, z + t * nz, within, stack, out)
+    return 2.0 * min(da, db)
+
+
+@njit(cache=True)
 def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
     """Distance between surfaces ``SA`` and ``SB`` near the point ``(x, y, z)`` (A's frame; ``xf``
     is B's pose in A's frame, rotation row-major then translation), into ``out[0:7]``: signed

@@ -62,8 +62,9 @@ class Config:
     coupling: str | None = None
     coupling_gains: object = None
     narrowphase: str = "spheres"
-    # contact groups measured on the surfaces per pair call, the deepest first: each costs tens
-    # of µs, and more find more of the places that touch at once
+    # contact groups measured on the surfaces per pair call in constraint mode, the deepest
+    # first: each costs tens of µs, and more find more of the places that touch at once
+    # (penalty forces take every group's overlap depth, see hook._surface_penalty)
     surface_groups: int = 8
 
     def validate(self) -> "Config":
@@ -112,9 +113,10 @@ class Config:
         if self.narrowphase not in _NARROW:
             raise ConfigError(f"mjist_narrowphase={self.narrowphase!r} must be 'spheres' (contacts of the leaf spheres) "
                               "or 'surface' (the IST finds where, the meshes say how far)")
-        if self.narrowphase == "surface" and self.mode != "constraint":
-            raise ConfigError("mjist_narrowphase='surface' gives MuJoCo contacts (mjist_mode='constraint'); the penalty "
-                              "forces of mjist_mode='penalty' use the leaf spheres: set mjist_narrowphase='spheres'")
+        if self.narrowphase == "surface" and self.mode == "penalty" and self.penalty != "contacts":
+            raise ConfigError(f"mjist_narrowphase='surface' gives depths, not volumes: mjist_penalty={self.penalty!r} "
+                              "sums leaf-sphere overlap volumes; use mjist_penalty='contacts' or "
+                              "mjist_narrowphase='spheres'")
         if not 1 <= int(self.candidates) <= 4096:
             raise ConfigError(f"mjist_candidates={self.candidates} must be between 1 and 4096")
         if not 1 <= int(self.surface_groups) <= int(self.candidates):

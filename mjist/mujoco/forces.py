@@ -14,7 +14,9 @@ there first is called first) adds to ``qfrc_passive``:
     n and p are the means over the group's leaf pairs at least half as deep as the deepest,
     weighted by how much deeper than that they are (``traverse.blend``): continuous in the pose,
     where the deepest pair's own normal jumps when another spot of the group becomes the deepest
-    (that jump can sustain a chatter of a held mandible);
+    (that jump can sustain a chatter of a held mandible). With ``mjist_narrowphase='surface'``
+    δ is the meshes' overlap thickness along n at p instead (``hook._surface_penalty``),
+    positive only where the solids truly overlap and continuous too;
   - ``volume`` law: Weller & Zachmann's penetration volume V (all overlapping leaf pairs' lens
     volumes), force ``max(0, k_v V − c_v V v_n) n̂`` at the overlap centroid, n̂ the
     volume-weighted normal;
@@ -198,7 +200,7 @@ def _penalty_pair(E, m, d, row, con, small, big, out):
     for i in range(O_TIME):
         out[i] = 0.0
     n = hook.pair_contacts(E, m, d, con.ctypes.data, int(row[PEN_G1]), int(row[PEN_G2]), 0.0, int(row[PEN_PAIR]),
-                           int(row[PEN_GROUPS]), big.ctypes.data)
+                           int(row[PEN_GROUPS]), big.ctypes.data, True)
     if n == 0:
         return
     v1 = small[0:6]

@@ -267,8 +267,9 @@ def _write_row(row, dist, Pa, g):
 
 
 @njit(cache=True)
-def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
-    """Contacts of a managed pair into ``con``; returns the count (0..cap)."""
+def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
+    """Contacts of a managed pair into ``con``; returns the count (0..cap). ``soft``: rows for the
+    penalty forces (see ``_surface_contacts``)."""
     nman = E[E_NMAN]
     count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
     Na, Nb = pair_trees(E, g1, g2)
@@ -316,7 +317,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch):
     fst[F_OK] = 0.0
     if surface:
         k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
-                              scratch, count)
+                              scratch, count, soft, st, sv, bacc, pair)
         if k == 0:
             return 0
     else:
@@ -599,22 +600,59 @@ def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, s
 
 @njit(cache=True)
 def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap, scratch,
-                      count):
+                      count, soft, st, sv, bacc, pair):
     """Surface narrow phase: the distances on the meshes of the deepest of the ``n`` groups by
     the IST (``narrow.deepest``), and those within ``margin`` as contacts into ``con`` (the deepest,
     then the most spread, one per point). Returns the count; ``chosen[0]`` indexes the deepest
-    in ``cand``."""
+    in ``cand``. ``soft``: the penalty forces' rows instead (``_surface_penalty``)."""
+    if soft:
+        return _surface_penalty(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, con, cap, scratch,
+                                count, st, sv, bacc, pair)
     sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
     SA = _surface(E, g1)
     SB = _surface(E, g2)
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
     n = nw.deepest(cand, cval, n, E[E_NARROW])
     m = _measure(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count)
     k = spread(geom, 9, sval, m, cap, chosen, dmin)
     kk = nw.distinct(geom, chosen, k, eps)  # groups whose descents ended at one point give one contact
-    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
     for j in range(kk):
         _write_row(out[j], sval[chosen[j]], Pa, geom[chosen[j]])
     return kk
+
+
+@njit(cache=True)
+def _surface_penalty(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, con, cap, scratch, count, st,
+                     sv, bacc, pair):
+    """The penalty forces' rows on the surfaces: each group (``cap`` at most, the deepest by the
+    IST) at the point and normal its leaf pairs blend to (``_blend_group``), with the overlap
+    thickness of the meshes there along that normal (``surface.overlap_depth``) as its depth.
+    All three are continuous in the pose and the depth is positive only where the solids truly
+    overlap; every group deeper than ``-margin`` is a row (no selection, no merging), so the
+    summed force is continuous. Returns the count; ``chosen[0]`` indexes the deepest."""
+    sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
+    SA = _surface(E, g1)
+    SB = _surface(E, g2)
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    n = nw.deepest(cand, cval, n, cap) if n > cap else n
+    thr = margin + eps
+    m = 0
+    for i in range(n):
+        g = geom[i]
+        tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
+        count[C_VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP],
+                                        bacc, pair, g)
+        depth = sf.overlap_depth(SA, SB, xf, g[9], g[10], g[11], g[0], g[1], g[2], eps, sst, res)
+        count[C_SURFACE] += 1
+        if not depth == depth:  # a surface query failed
+            count[C_FALLBACK] += 1
+        elif depth > -margin:
+            if m == 0 or depth > -sval[chosen[0]]:
+                chosen[0] = i
+            sval[i] = -depth
+            _write_row(out[m], -depth, Pa, g)
+            m += 1
+    return m
 
 
 @njit(cache=True)
@@ -753,7 +791,7 @@ def collide(slot, m, d, con, g1, g2, margin):
                         count[C_DISTANCE] += 1
                         k = pair_distance(E, d, con, g1, g2, margin, p, cap, raw)
                     else:
-                        k = pair_contacts(E, m, d, con, g1, g2, margin, p, cap, raw)
+                        k = pair_contacts(E, m, d, con, g1, g2, margin, p, cap, raw, False)
                     abi.call_with_data(E[E_FREE], d)
                     return k
             elif E[E_NPRIM] > 0:

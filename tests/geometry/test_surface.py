@@ -73,6 +73,38 @@ def test_signed_distance_of_a_sphere_mesh_has_the_right_sign_at_vertices_and_edg
     assert np.allclose(signed(s, base[:50] + 0.05 * n[:50])[:, 0], -ref, atol=1e-9)
 
 
+@njit  # not cached: numba would not see the mjist kernels change
+def _overlap(SA, SB, xf, P, n, within):
+    stack = np.empty(sf.STACK, np.int64)
+    out = np.empty(7)
+    res = np.empty(len(P))
+    for i in range(len(P)):
+        res[i] = sf.overlap_depth(SA, SB, xf, P[i, 0], P[i, 1], P[i, 2], n[0], n[1], n[2], within, stack, out)
+    return res
+
+
+def test_overlap_depth_is_the_thickness_between_two_boxes_and_negative_outside():
+    """Box B 1.8 above box A (both 2 wide): their overlap is the slab 0.8 < z < 1, 0.2 thick.
+    From any point of the slab's column the balanced point gives 0.2; a point whose balanced
+    point lies outside either box (or within ``within`` of it) gives a negative value."""
+    A = sf.build_surface(*_box_arrays())
+    xf = np.r_[np.eye(3).ravel(), 0.0, 0.0, 1.8]
+    P = np.array([[0, 0, 0.9], [0.3, -0.2, 0.85], [0, 0, 0.99], [0.5, 0.5, 0.7], [0, 0, -0.5], [0, 0, 2.5]], float)
+    d = _overlap(A.views(), A.views(), xf, P, np.array([0.0, 0.0, 1.0]), 0.5)
+    assert np.allclose(d[:4], 0.2, atol=1e-12)
+    assert (d[4:] < 0).all()
+    # continuous along a line through the overlap's edge (x = 1): no jump at the corner
+    line = np.c_[np.linspace(0.9, 1.1, 201), np.zeros(201), np.full(201, 0.9)]
+    d = _overlap(A.views(), A.views(), xf, line, np.array([0.0, 0.0, 1.0]), 0.5)
+    assert np.abs(np.diff(d)).max() <= 2 * 0.001 + 1e-12  # 2-Lipschitz in the point
+    assert d[0] == pytest.approx(0.2) and d[-1] < 0
+
+
+def _box_arrays():
+    m = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
 def test_local_distance_between_two_spheres():
     m = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
     s = sf.build_surface(m.vertices, m.faces)

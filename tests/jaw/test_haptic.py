@@ -95,28 +95,36 @@ def _coal_depth(bvh, Pmx, Pmd):
     return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
 
 
-@pytest.mark.slow  # CI keeps the closing trajectory against coal and the slow press's continuity
-def test_press_force_grows_with_coal_penetration(scene):
-    """The mandible pushed straight up into the maxilla in 0.1 mm steps: |F| and coal's depth both grow."""
-    model, h, gmx, gmd, bvh = scene
+def _static_press(model, h, gmx, gmd, bvh):
+    """The mandible pushed straight up from the occlusion in 0.1 mm steps (the handle on it, so
+    no coupling force): per step the pair's |F| and deepest depth, and coal's depth along the
+    push."""
     d = mujoco.MjData(model)
     h.forget(d)
     mujoco.mj_resetDataKeyframe(model, d, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "occlusion"))
     up = np.array([0.0, 0.0, 1.0])  # the jaw frame's +y (superior) in the world
     q0 = d.qpos[:3].copy()
     Pmx = _maxilla_pose(model, gmx)
-    forces_, depths = [], []
+    forces_, ist, depths = [], [], []
     for s in np.arange(-0.1e-3, 0.55e-3, 0.1e-3):
         d.qpos[:3] = q0 + s * up
         d.qvel[:] = 0.0
-        d.mocap_pos[0] = d.qpos[:3]  # the handle on the mandible: no coupling force
+        d.mocap_pos[0] = d.qpos[:3]
         d.mocap_quat[0] = d.qpos[3:7]
         mujoco.mj_forward(model, d)
         pair = h.haptic(d)["pairs"]["maxilla/mandible"]
         forces_.append(np.linalg.norm(pair["force"]))
+        ist.append(pair["depth"])
         Pmd = geom_pose(d, gmd)
         depths.append(_directional_depth((bvh[gmx], bvh[gmd]), Pmx, Pmd, up))
-    forces_, depths = np.array(forces_), np.array(depths)
+    return np.array(forces_), np.array(ist), np.array(depths)
+
+
+@pytest.mark.slow  # CI keeps the closing trajectory against coal and the slow press's continuity
+def test_press_force_grows_with_coal_penetration(scene):
+    """The mandible pushed straight up into the maxilla in 0.1 mm steps: |F| and coal's depth both grow."""
+    model, h, gmx, gmd, bvh = scene
+    forces_, _, depths = _static_press(model, h, gmx, gmd, bvh)
     assert forces_[0] == 0.0 and forces_[-1] > 1.0  # from apart to a firm press
     assert np.all(np.diff(depths) >= -1e-7)  # coal: the press deepens
     order = np.argsort(depths, kind="stable")
@@ -151,6 +159,65 @@ def test_force_continuity_along_the_slow_press(scene):
     bound = k * G * dx + 2.0 * k * dmax
     assert np.linalg.norm(F, axis=1).max() > 1.0
     assert np.all(jump <= bound + 1e-12), float(np.max(jump - bound))
+
+
+@pytest.fixture(scope="module")
+def surface_scene(cache):
+    model, h = A.load_model(SCENE, cache_dir=cache, narrowphase="surface")
+    yield model, h
+    h.detach()
+
+
+def test_surface_depths_push_only_where_the_meshes_overlap(scene, surface_scene):
+    """The contacts law on surface depths (``mjist_narrowphase='surface'``) along the static
+    press: no force until coal sees penetration, then a force and depth growing with coal's
+    depth, the depth within 0.15 mm below it (measured: each group's depth is the overlap's
+    thickness at its leaf pairs' blended point, not at the deepest spot); a two-thread rollout
+    equals the serial one."""
+    model, h = surface_scene
+    _, _, gmx, gmd, bvh = scene
+    forces_, ist, depths = _static_press(model, h, gmx, gmd, bvh)
+    assert forces_[0] == 0.0 and forces_[-1] > 1.0
+    assert np.all((forces_ > 0) <= (depths > 0))  # certified: the depth is positive only inside both meshes
+    assert np.all(np.diff(forces_[forces_ > 0]) > 0.0)  # once it pushes, harder the deeper
+    assert np.all(ist <= depths + 1e-5)
+    assert np.all(ist[depths > 0] >= depths[depths > 0] - 0.15e-3)
+    assert h.stats()["failed"] == 0 and h.stats()["surface_groups"] > 0
+    from mujoco import rollout
+
+    d = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, d, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "occlusion"))
+    d.mocap_pos[0] = d.qpos[:3] + [0.0, 0.0, 0.4e-3]  # the handle pulls the teeth together
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    x = np.empty(mujoco.mj_stateSize(model, spec))
+    mujoco.mj_getState(model, d, x, spec)
+    x0 = np.tile(x, (4, 1))
+    x0[:, 1:4] += np.random.default_rng(0).normal(0, 1e-5, (4, 3))
+    serial, _ = rollout.rollout(model, mujoco.MjData(model), x0, nstep=100)
+    par, _ = rollout.rollout(model, [mujoco.MjData(model), mujoco.MjData(model)], x0, nstep=100)
+    assert np.array_equal(serial, par) and np.all(np.isfinite(serial))
+
+
+@pytest.mark.slow  # two 1.5 s trajectories
+def test_surface_depths_turn_no_faster_than_the_sphere_law(scene, surface_scene):
+    """Along the scripted press, the surface-depth force changes per step by no more than the
+    sphere law's does (both continuous by construction; the descents of the constraint
+    narrow phase are not, which is why the penalty law does not use them), and it pushes only
+    where coal finds the meshes colliding."""
+    model, h, gmx, gmd, bvh = scene
+    smodel, sh = surface_scene
+    jumps = []
+    for m, hh in ((model, h), (smodel, sh)):
+        log = haptic.run(m, hh, haptic.scripted(m, "press"))
+        F = log["contact_force"]
+        jumps.append(np.linalg.norm(np.diff(F, axis=0), axis=1).max())
+        assert np.linalg.norm(F, axis=1).max() > 1.0
+    Pmx = _maxilla_pose(smodel, gmx)
+    for i in range(0, len(F), 10):
+        if np.linalg.norm(F[i]) > 0:
+            Pmd = geom_pose_at(smodel, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
+            assert jawmod.coal_collides(bvh[gmx], Pmx, bvh[gmd], Pmd)
+    assert jumps[1] <= jumps[0]
 
 
 @pytest.mark.slow  # a long hold: the CI set keeps the closing trajectory against coal

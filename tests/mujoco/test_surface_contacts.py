@@ -68,8 +68,9 @@ def test_setting_is_checked_and_sets_its_defaults(comb_file, cache):
     with pytest.raises(ConfigError, match="'spheres'.*'surface'"):
         A.attach(mujoco.MjModel.from_xml_string(
             COMB_XML.format(comb=comb_file, extra="").replace('data="surface"', 'data="triangles"')), cache_dir=cache)
-    with pytest.raises(ConfigError, match="mjist_narrowphase='spheres'"):
-        A.attach(m, mode="penalty", cache_dir=cache)
+    with pytest.raises(ConfigError, match="depths, not volumes"):
+        A.attach(m, mode="penalty", penalty="volume", cache_dir=cache)
+    assert config.read_config(m, mode="penalty").narrowphase == "surface"  # the contacts law takes surface depths
 
 
 def test_flat_tips_give_the_exact_depth(comb_file, cache):
