@@ -86,11 +86,11 @@ def first_touch(meshdir):
     return 0.5 * (lo + hi), (bx, bm)
 
 
-def run(meshdir, mode, max_error, steps, touch, coal):
+def run(meshdir, mode, max_error, steps, touch, coal, surface_groups=8):
     gtype = "sdf" if mode == "native-sdf" else "mesh"
     m = _model(meshdir, gtype, max_error)
     t0 = time.perf_counter()
-    h = A.attach(m, narrowphase=mode) if mode in ("spheres", "surface") else None
+    h = A.attach(m, narrowphase=mode, surface_groups=surface_groups) if mode in ("spheres", "surface") else None
     attach_s = time.perf_counter() - t0
     d = mujoco.MjData(m)
     times = np.empty(steps)
@@ -122,6 +122,7 @@ def main():
     ap.add_argument("--modes", default="spheres,surface,native-sdf")
     ap.add_argument("--max-errors", default="default,0.0001", help="per-tree max_error in metres, 'default': the layer's")
     ap.add_argument("--steps", type=int, default=800)
+    ap.add_argument("--surface-groups", type=int, default=8, help="mjist_surface_groups of the surface contacts")
     ap.add_argument("--out", default=str(ROOT / "out" / "bench_slide"))
     a = ap.parse_args()
     out = Path(a.out)
@@ -139,7 +140,7 @@ def main():
         for mode in a.modes.split(","):
             if mode == "native-sdf" and rows and any(r["mode"] == "native-sdf" for r in rows):
                 continue  # one mesh-SDF run: it has no tree
-            r = run(SHARED, mode, max_error, a.steps, touch, coal)
+            r = run(SHARED, mode, max_error, a.steps, touch, coal, a.surface_groups)
             rows.append(r)
             eb = f"ε1+ε2 {r['error_bound_mm']:.3f} mm" if "error_bound_mm" in r else "no tree"
             print(f"{mode:10s} {eb:18s} step median {r['step_us_median']:8.1f} µs (at rest {r['step_us_median_rest']:8.1f})  "

@@ -14,7 +14,7 @@ tuple ``S``:
 ``hi``, then children ``left, right``, or for a leaf ``-count, first``; ``TRI (nf, 9)`` the
 triangles' corners in the BVH's leaf order and ``ORDER (nf,)`` their face ids; ``F (nf, 3)``
 faces, ``FN (nf, 3)`` unit face normals, ``VN (nv, 3)`` vertex pseudo-normals, ``ADJ (nf, 3)``
-the face across edge ab, ac, bc (-1: none). A query touches a node's row and its leaves'
+the face across edge ab, ac, bc (-1: none), ``POS (nf,)`` each face's row in ``TRI``. A query touches a node's row and its leaves'
 corners only, one or two cache lines each (``bvh``'s build-time layout spreads a node over
 six arrays): the narrow phase's queries are memory-bound.
 """
@@ -89,13 +89,15 @@ def build_surface(V, F) -> Surface:
     node[:, 6] = np.where(leaf, -count, left)
     node[:, 7] = np.where(leaf, start, right)
     floats = np.concatenate([node.ravel(), tri[border].ravel(), FN.ravel(), VN.ravel()])
-    ints = np.concatenate([border, F.ravel(), ADJ.ravel()]).astype(np.int64)
+    POS = np.empty(nf, np.int64)
+    POS[border] = np.arange(nf)
+    ints = np.concatenate([border, F.ravel(), ADJ.ravel(), POS]).astype(np.int64)
     return Surface(floats, ints, (nv, nf, m))
 
 
 @njit(cache=True)
 def unpack(floats, ints, nv, nf, m):
-    """The kernels' views ``(NODE, TRI, ORDER, F, FN, VN, ADJ)`` of a packed surface."""
+    """The kernels' views ``(NODE, TRI, ORDER, F, FN, VN, ADJ, POS)`` of a packed surface."""
     o = NODE_W * m
     NODE = floats[0:o].reshape((m, NODE_W))
     TRI = floats[o:o + 9 * nf].reshape((nf, 9))
@@ -106,7 +108,8 @@ def unpack(floats, ints, nv, nf, m):
     ORDER = ints[0:nf]
     F = ints[nf:4 * nf].reshape((nf, 3))
     ADJ = ints[4 * nf:7 * nf].reshape((nf, 3))
-    return NODE, TRI, ORDER, F, FN, VN, ADJ
+    POS = ints[7 * nf:8 * nf]
+    return NODE, TRI, ORDER, F, FN, VN, ADJ, POS
 
 
 @njit(cache=True, inline="always")
@@ -118,7 +121,7 @@ def float_words(nv, nf, m):
 @njit(cache=True, inline="always")
 def int_words(nf):
     """Length of a packed surface's ``ints``."""
-    return 7 * nf
+    return 8 * nf
 
 
 @njit(cache=True, inline="always")
@@ -192,18 +195,9 @@ def _pseudo_normal(S, f, feature):
     return FN[f, 0], FN[f, 1], FN[f, 2]
 
 
-@njit(cache=True)
-def signed_closest(S, px, py, pz, stack, bound2, out):
-    """Signed distance of ``p`` to the surface ``S`` (negative inside), its closest point and the
-    outward direction (the distance's gradient) into ``out[0:7]``.
-
-    ``bound2``: a squared distance the closest point is known to lie within (``np.inf``
-    without one). Returns False when the surface has no point within it (``out`` untouched).
-    """
-    d2, qx, qy, qz, t, feature = _closest(S, px, py, pz, stack, bound2)
-    if t < 0:
-        return False
-    f = S[2][t]
+@njit(cache=True, inline="always")
+def _signed(S, f, feature, d2, qx, qy, qz, px, py, pz, out):
+    """``signed_closest``'s ``out`` from the closest point ``q`` on ``feature`` of face ``f``."""
     nx, ny, nz = _pseudo_normal(S, f, feature)
     dx, dy, dz = px - qx, py - qy, pz - qz
     d = math.sqrt(d2)
@@ -221,10 +215,94 @@ def signed_closest(S, px, py, pz, stack, bound2, out):
     out[4] = gx
     out[5] = gy
     out[6] = gz
-    return True
+
+
+@njit(cache=True)
+def signed_closest(S, px, py, pz, stack, bound2, out):
+    """Signed distance of ``p`` to the surface ``S`` (negative inside), its closest point and the
+    outward direction (the distance's gradient) into ``out[0:7]``.
+
+    ``bound2``: a squared distance the closest point is known to lie within (``np.inf``
+    without one). Returns False when the surface has no point within it (``out`` untouched).
+    """
+    return _signed_closest_face(S, px, py, pz, stack, bound2, out) >= 0
+
+
+@njit(cache=True, inline="always")
+def _signed_closest_face(S, px, py, pz, stack, bound2, out):
+    """``signed_closest`` returning the closest point's face (-1: none within the bound)."""
+    d2, qx, qy, qz, t, feature = _closest(S, px, py, pz, stack, bound2)
+    if t < 0:
+        return -1
+    f = S[2][t]
+    _signed(S, f, feature, d2, qx, qy, qz, px, py, pz, out)
+    return f
 
 
 REFINE_W = 21  # float64 words of local_distance's temporaries
+WALK_STEPS = 64  # faces a walk moves through at most (it stops earlier at a local closest point)
+RING_MAX = 64  # faces around one vertex a walk looks at, at most
+
+
+@njit(cache=True, inline="always")
+def _on_face(S, g, px, py, pz):
+    """Squared distance from p to face ``g``, the closest point and its feature."""
+    T = S[1][S[7][g]]
+    x, y, z, feat = bvh.closest_on_triangle_xyz(px, py, pz, T[0], T[1], T[2], T[3], T[4], T[5], T[6], T[7], T[8])
+    return (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2, x, y, z, feat
+
+
+@njit(cache=True)
+def _walk(S, f, px, py, pz, out):
+    """A local closest point of the surface to p, walked to from face ``f`` over the edge
+    adjacency, as ``signed_closest`` writes it into ``out``; returns its face.
+
+    While the closest point lies on an edge or a vertex, the faces sharing it (the face across
+    the edge, every face around the vertex) are tried and the walk moves to the closest that is
+    strictly closer. No BVH: each step reads a few neighbouring faces. The point it stops at is
+    closest among its neighbours, not necessarily globally (a walk does not cross to another
+    sheet of the surface); ``signed_closest`` answers globally."""
+    F, ADJ = S[3], S[6]
+    d2, qx, qy, qz, feat = _on_face(S, f, px, py, pz)
+    for _ in range(WALK_STEPS):
+        if feat >= bvh.FACE:
+            break
+        bg = -1
+        bd2, bx, by, bz, bfeat = d2, 0.0, 0.0, 0.0, 0
+        if feat >= bvh.EDGE_AB:
+            g = ADJ[f, feat - bvh.EDGE_AB]
+            if g >= 0:
+                e2, x, y, z, ft = _on_face(S, g, px, py, pz)
+                if e2 < bd2:
+                    bg, bd2, bx, by, bz, bfeat = g, e2, x, y, z, ft
+        else:
+            v = F[f, feat]
+            # around the vertex both ways from f (the second only when the first meets a border)
+            for side in range(2):
+                e = (0 if feat < 2 else 1) if side == 0 else (1 if feat == 0 else 2)
+                prev = f
+                cur = ADJ[f, e]
+                n = 0
+                while cur >= 0 and cur != f and n < RING_MAX:
+                    n += 1
+                    e2, x, y, z, ft = _on_face(S, cur, px, py, pz)
+                    if e2 < bd2:
+                        bg, bd2, bx, by, bz, bfeat = cur, e2, x, y, z, ft
+                    k = 0 if F[cur, 0] == v else (1 if F[cur, 1] == v else 2)
+                    ea = 0 if k < 2 else 1  # the two edges of corner k: a (ab, ac), b (ab, bc), c (ac, bc)
+                    eb = 1 if k == 0 else 2
+                    nxt = ADJ[cur, ea]
+                    if nxt == prev:
+                        nxt = ADJ[cur, eb]
+                    prev = cur
+                    cur = nxt
+                if cur == f:
+                    break
+        if bg < 0:
+            break
+        f, d2, qx, qy, qz, feat = bg, bd2, bx, by, bz, bfeat
+    _signed(S, f, feat, d2, qx, qy, qz, px, py, pz, out)
+    return f
 
 
 @njit(cache=True, inline="always")
@@ -238,19 +316,27 @@ def _to_b(xf, x, y, z):
 @njit(cache=True, inline="always")
 def _near(S, x, y, z, stack, within, out):
     """``signed_closest`` looking first within ``within`` of the point (a bound that prunes the
-    tree), then everywhere when rounding left the bound too tight."""
-    if within < np.inf and signed_closest(S, x, y, z, stack, (within * (1.0 + 1e-9) + 1e-300) ** 2, out):
-        return True
-    return signed_closest(S, x, y, z, stack, np.inf, out)
+    tree), then everywhere when rounding left the bound too tight; returns the face (-1: the
+    surface is empty)."""
+    if within < np.inf:
+        f = _signed_closest_face(S, x, y, z, stack, (within * (1.0 + 1e-9) + 1e-300) ** 2, out)
+        if f >= 0:
+            return f
+    return _signed_closest_face(S, x, y, z, stack, np.inf, out)
 
 
 @njit(cache=True, inline="always")
-def _on_b(SB, xf, x, y, z, stack, within, b):
-    """``b`` ← B's closest point to ``(x, y, z)`` (known within ``within``) and B's outward
-    direction there, in A's frame."""
+def _on_b(SB, xf, x, y, z, stack, within, b, f):
+    """``b`` ← B's closest point to ``(x, y, z)`` (known within ``within``; walked to from B's
+    face ``f`` when ``f`` ≥ 0) and B's outward direction there, in A's frame. Returns the face
+    (-1: a query failed)."""
     bx, by, bz = _to_b(xf, x, y, z)
-    if not _near(SB, bx, by, bz, stack, within, b):
-        return False
+    if f >= 0:
+        f = _walk(SB, f, bx, by, bz, b)
+    else:
+        f = _near(SB, bx, by, bz, stack, within, b)
+        if f < 0:
+            return f
     cx, cy, cz = b[1], b[2], b[3]
     gx, gy, gz = b[4], b[5], b[6]
     b[1] = xf[0] * cx + xf[1] * cy + xf[2] * cz + xf[9]
@@ -259,17 +345,17 @@ def _on_b(SB, xf, x, y, z, stack, within, b):
     b[4] = xf[0] * gx + xf[1] * gy + xf[2] * gz
     b[5] = xf[3] * gx + xf[4] * gy + xf[5] * gz
     b[6] = xf[6] * gx + xf[7] * gy + xf[8] * gz
-    return True
+    return f
 
 
 @njit(cache=True)
 def _depths(SA, SB, xf, x, y, z, within, stack, out):
     """The point's depths inside A and inside B (negative outside; NaN when a query fails)."""
-    if not _near(SA, x, y, z, stack, within, out):
+    if _near(SA, x, y, z, stack, within, out) < 0:
         return np.nan, np.nan
     da = -out[0]
     bx, by, bz = _to_b(xf, x, y, z)
-    if not _near(SB, bx, by, bz, stack, within, out):
+    if _near(SB, bx, by, bz, stack, within, out) < 0:
         return np.nan, np.nan
     return da, -out[0]
 
@@ -290,6 +376,18 @@ def overlap_depth(SA, SB, xf, x, y, z, nx, ny, nz, within, stack, out):
     return 2.0 * min(da, db)
 
 
+@njit(cache=True, inline="always")
+def _answer(a, x, y, z, out):
+    """``local_distance``'s answer for B's point ``(x, y, z)`` and A's query there, ``a``."""
+    out[0] = a[0]
+    out[1] = 0.5 * (x + a[1])
+    out[2] = 0.5 * (y + a[2])
+    out[3] = 0.5 * (z + a[3])
+    out[4] = a[4]
+    out[5] = a[5]
+    out[6] = a[6]
+
+
 @njit(cache=True)
 def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
     """Distance between surfaces ``SA`` and ``SB`` near the point ``(x, y, z)`` (A's frame; ``xf``
@@ -300,7 +398,10 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
     against A's gradient along B's tangent plane, each projected back onto B, with
     Barzilai–Borwein lengths (the first ``step0`` times the gradient); a step that does not
     lower the distance is retried a quarter as long. ``iters`` surface queries of A at most, or
-    until a step would be shorter than ``tol``. The answer is the smallest value met: for
+    until a step would be shorter than ``tol``. The first projection and query use the BVH; the
+    later ones walk the edge adjacency from the best point's faces (``_walk``: a few faces per
+    step instead of a BVH descent), and the best point's value is then taken from the BVH
+    again, so the answer is a true signed distance however the walks ended. It is the smallest value met: for
     separated surfaces a true distance between two surface points (an upper bound of the
     surfaces' distance, equal to it at a local minimum), for overlapping ones minus the depth
     of B's deepest point met inside A. The point is the middle of that point of B and its
@@ -311,15 +412,23 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
     b = tmp[7:14]  # B's trial point and normal
     yb = tmp[14:17]  # best point of B
     tb = tmp[17:20]  # A's tangential gradient there
-    if not _on_b(SB, xf, x, y, z, stack, np.inf, b):
+    fb = _on_b(SB, xf, x, y, z, stack, np.inf, b, -1)
+    if fb < 0:
         return False
+    fa = -1
+    fyb = fya = 0  # the best point's faces on B and A: the walks start there
+    walked = False
     best = np.inf
     alpha = step0
-    within = np.inf  # A's surface lies within this of the trial point
     tn = 0.0
     for it in range(max(iters, 1)):
-        if not _near(SA, b[1], b[2], b[3], stack, within, a):
-            return False
+        if fa < 0:
+            fa = _near(SA, b[1], b[2], b[3], stack, np.inf, a)
+            if fa < 0:
+                return False
+        else:
+            fa = _walk(SA, fya, b[1], b[2], b[3], a)
+            walked = True
         gn = a[4] * b[4] + a[5] * b[5] + a[6] * b[6]
         tx, ty, tz = a[4] - gn * b[4], a[5] - gn * b[5], a[6] - gn * b[6]
         if a[0] < best:
@@ -329,23 +438,20 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
                 if sg > 0.0:
                     alpha = min((sx * sx + sy * sy + sz * sz) / sg, 100.0 * step0)
             best = a[0]
-            out[0] = a[0]
-            out[1] = 0.5 * (b[1] + a[1])
-            out[2] = 0.5 * (b[2] + a[2])
-            out[3] = 0.5 * (b[3] + a[3])
-            out[4] = a[4]
-            out[5] = a[5]
-            out[6] = a[6]
+            _answer(a, b[1], b[2], b[3], out)
             yb[0], yb[1], yb[2] = b[1], b[2], b[3]
+            fyb, fya = fb, fa
             tb[0], tb[1], tb[2] = tx, ty, tz
             tn = math.sqrt(tx * tx + ty * ty + tz * tz)
         else:
             alpha *= 0.25
         if alpha * tn < tol or it == iters - 1:
             break
-        if not _on_b(SB, xf, yb[0] - alpha * tb[0], yb[1] - alpha * tb[1], yb[2] - alpha * tb[2], stack,
-                     alpha * tn, b):
+        fb = _on_b(SB, xf, yb[0] - alpha * tb[0], yb[1] - alpha * tb[1], yb[2] - alpha * tb[2], stack,
+                   alpha * tn, b, fyb)
+    if walked:
+        # the walks found local closest points: the best point's value from the whole of A
+        if _near(SA, yb[0], yb[1], yb[2], stack, abs(best), a) < 0:
             return False
-        # A's surface lies within the best distance plus how far the trial point moved
-        within = abs(best) + math.sqrt((b[1] - yb[0]) ** 2 + (b[2] - yb[1]) ** 2 + (b[3] - yb[2]) ** 2)
+        _answer(a, yb[0], yb[1], yb[2], out)
     return True

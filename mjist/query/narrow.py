@@ -19,9 +19,10 @@ from numba import njit
 from ..geometry import surface as sf
 from . import traverse as tv
 
-# surface queries of A per measured group at most: more reach the surfaces' closest points from
-# farther starts (coarser trees), at a linear cost ...
-ITERS = 10
+# surface queries of A per measured group at most (all but the first are walks over the
+# meshes' adjacency, a few µs each): more reach the surfaces' closest points from farther
+# starts (coarser trees), at a linear cost ...
+ITERS = 30
 # ... stopping once a step would move less than this fraction of ε_A + ε_B
 TOL = 1e-3
 # contacts closer than this fraction of ε_A + ε_B are one: groups whose descents met at one point
