@@ -19,7 +19,9 @@ With ``mjist_narrowphase='surface'`` the threshold of 3 is ``margin + ε1 + ε2`
 pair whose surfaces can be within ``margin`` of each other lies in a group below it), and
 the distance, point and normal of the deepest ``mjist_surface_groups`` groups come from the
 meshes themselves (``query.narrow``: ``geometry.surface.local_distance`` started at the
-group's deepest leaf pair) before 4.
+group's deepest leaf pair) before 4. The penalty forces (``forces.py``) call ``pair_contacts``
+too, with ``soft``: every group's overlap depth at its blended point (``_surface_penalty``),
+continuous in the pose where a descent's answer is not.
 
 A distance request (``mj_geomDistance``, distance sensors: ``con`` is not in the MjData's
 arena, see ``distance_request``) skips 2-5: its caller reads only the smallest distance, so it
