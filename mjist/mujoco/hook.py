@@ -271,7 +271,7 @@ def _write_row(row, dist, Pa, g):
 @njit(cache=True)
 def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
     """Contacts of a managed pair into ``con``; returns the count (0..cap). ``soft``: rows for the
-    penalty forces (see ``_surface_contacts``)."""
+    penalty forces (with surfaces, ``_surface_penalty``'s)."""
     nman = E[E_NMAN]
     count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
     Na, Nb = pair_trees(E, g1, g2)
@@ -318,8 +318,12 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
         return 0
     fst[F_OK] = 0.0
     if surface:
-        k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
-                              scratch, count, soft, st, sv, bacc, pair)
+        if soft:
+            k = _surface_penalty(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, con, cap, scratch,
+                                 count, st, sv, bacc, pair)
+        else:
+            k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
+                                  scratch, count)
         if k == 0:
             return 0
     else:
@@ -602,14 +606,11 @@ def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, s
 
 @njit(cache=True)
 def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap, scratch,
-                      count, soft, st, sv, bacc, pair):
+                      count):
     """Surface narrow phase: the distances on the meshes of the deepest of the ``n`` groups by
     the IST (``narrow.deepest``), and those within ``margin`` as contacts into ``con`` (the deepest,
     then the most spread, one per point). Returns the count; ``chosen[0]`` indexes the deepest
-    in ``cand``. ``soft``: the penalty forces' rows instead (``_surface_penalty``)."""
-    if soft:
-        return _surface_penalty(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, con, cap, scratch,
-                                count, st, sv, bacc, pair)
+    in ``cand``."""
     sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
     SA = _surface(E, g1)
     SB = _surface(E, g2)
