@@ -120,16 +120,18 @@ def pose_difference(scene_a, occ_a, scene_b, occ_b) -> dict:
     """Best candidates of two searches of the same jaws (scenes in the same world frame): the
     largest displacement of a mandible vertex between them (mm) and the rotation (degrees)."""
     import mujoco
+    from scipy.spatial.transform import Rotation
 
-    from mjist.jaw.occlusion import pose_error
-    from mjist.mujoco.scene import mesh_of
+    from mjist.mujoco.scene import geom_pose_at, mesh_of
 
     m = mujoco.MjModel.from_xml_path(str(scene_a))
     g = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "mandible")
     V, _ = mesh_of(m, g)
     a = json.loads(Path(occ_a).read_text())["candidates"][0]
     b = json.loads(Path(occ_b).read_text())["candidates"][0]
-    e = pose_error(m, g, a["pos"], a["quat"], b["pos"], b["quat"], V)
+    A, B = geom_pose_at(m, g, a["pos"], a["quat"]), geom_pose_at(m, g, b["pos"], b["quat"])
+    dv = np.linalg.norm(V @ (A[:3, :3] - B[:3, :3]).T + (A[:3, 3] - B[:3, 3]), axis=1)
+    e = {"max_mm": float(dv.max() * 1e3), "rotation_deg": float(np.degrees(Rotation.from_matrix(A[:3, :3] @ B[:3, :3].T).magnitude()))}
     return {"max_mm": e["max_mm"], "rotation_deg": e["rotation_deg"]}
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 # the columns of cohort.csv, in order; the *_s columns are times (they differ run to run)
 COLUMNS = ["patient", "status", "error_stage", "error", "best_score", "best_starts", "regions", "n_regions", "both_sides",
-           "contacts", "coal_gap_mm", "closest_maxilla_mm", "closest_mandible_mm", "contact_area_maxilla_mm2",
+           "interocclusal_mm", "contact_fraction", "settled", "ambiguous", "coal_gap_mm", "closest_maxilla_mm", "closest_mandible_mm", "contact_area_maxilla_mm2",
            "contact_area_mandible_mm2", "error_bound_mm", "midline_offset_mm", "design_max_mm", "design_rms_mm",
            "design_rotation_deg", "within_target", "units", "up", "hinge_source", "teeth_only",
            "prepare_s", "tree_maxilla_s", "tree_mandible_s", "search_s", "contact_map_s", "work_s"]

@@ -180,7 +180,8 @@ def _row(prep: dict, res: dict, cmap) -> dict:
     b = res["candidates"][0]
     sides = {r.split("-")[0] for r in b["regions"]}
     row.update(best_score=round(b["score"], 4), best_starts=b["starts"], regions=";".join(b["regions"]), n_regions=len(b["regions"]),
-               both_sides=sides == {"left", "right"}, contacts=b["contacts"],
+               both_sides=sides == {"left", "right"}, interocclusal_mm=round(b["interocclusal_mm"], 4),
+               contact_fraction=round(b["contact_fraction"], 4), settled=b["settled"], ambiguous=res["confidence"]["ambiguous"],
                coal_gap_mm=None if b["coal_distance_mm"] is None else round(b["coal_distance_mm"], 5))
     for name in ("maxilla", "mandible"):
         regs = cmap[name].regions if cmap else []

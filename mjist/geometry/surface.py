@@ -24,7 +24,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from . import bvh
 
@@ -455,3 +455,31 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
             return False
         _answer(a, yb[0], yb[1], yb[2], out)
     return True
+
+
+@njit(cache=True, parallel=True)
+def _signed_many(floats, ints, nv, nf, m, P, out):
+    S = unpack(floats, ints, nv, nf, m)
+    for i in prange(P.shape[0]):
+        stack = np.empty(STACK, np.int64)
+        row = np.empty(7)
+        signed_closest(S, P[i, 0], P[i, 1], P[i, 2], stack, np.inf, row)
+        for k in range(4):
+            out[i, k] = row[k] if k == 0 else row[k + 3]
+
+
+def signed_distances(surface: Surface, P) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance of points ``P (n, 3)`` to ``surface`` (negative inside) and its gradient.
+
+    Returns
+    -------
+    distance : (n,) float
+        Exact distance to the nearest triangle, negative for points inside the closed surface
+        (sign from the nearest feature's angle-weighted pseudo-normal).
+    gradient : (n, 3) float
+        The outward unit direction of steepest increase of the distance at each point.
+    """
+    P = np.ascontiguousarray(P, np.float64).reshape(-1, 3)
+    out = np.empty((len(P), 4))
+    _signed_many(surface.floats, surface.ints, *surface.sizes, P, out)
+    return out[:, 0], out[:, 1:]

@@ -34,6 +34,11 @@ MIDLINE = 4e-3  # m: points this close to the midline count as "on" it (the inci
 REGION_CUTS = (0.3, 0.55)
 BONWILL_SIDE = 0.100  # m: Bonwill triangle side (condyle to condyle, condyle to incisal point)
 BALKWILL_DEG = 26.0  # angle between the Bonwill triangle and the occlusal plane
+# how far the hinge estimate may be from the true condylar axis (m, about one standard deviation):
+# adult intercondylar widths and incisal-to-condyle distances spread by about a tenth around
+# Bonwill's 100 mm, Balkwill's angle by about 5°; a fit to the condyles themselves is within a millimetre
+BONWILL_UNCERTAINTY = 0.010
+CONDYLE_UNCERTAINTY = 0.001
 RAMUS_HEIGHT = 0.015  # m: a mandible reaching this far above its occlusal plane has rami and condyles
 # a whole adult mandible (the shared CBCT mandible, bone density 1900 kg/m^3): mass, inertia
 # about its centre of mass (jaw-frame axes x left, y up, z anterior: ixx iyy izz ixy ixz iyz)

@@ -122,14 +122,14 @@ def _arch_map(name, V, F, normals, up_dir, tree, P_other, V_other, F_other, fram
 def contact_map(model, handle, pos, quat, *, sample: int = 200, seed: int = 0, frames: dict | None = None) -> dict:
     """The contact map of an occlusion-search scene's jaws with the mandible body at ``pos``, ``quat``.
 
-    ``frames``: the arches' frames (``occlusion.arch_frames``) when the caller has them.
+    ``frames``: the arches' frames (``scenepair.arch_frames``) when the caller has them.
 
     Returns ``{"maxilla": ArchMap, "mandible": ArchMap, "error_bound_mm": {...}}``.
     """
     import trimesh
 
     from ..mujoco.scene import geom_pose, geom_pose_at, mesh_of
-    from .occlusion import UP, arch_frames
+    from .scenepair import UP, arch_frames
 
     gmx, gmd = handle.geoms["maxilla"], handle.geoms["mandible"]
     d = mujoco.MjData(model)

@@ -22,6 +22,8 @@ from . import pair as jawmod
 from .scenes import pair_scene
 
 SCENE = jawmod.BUNDLED / "jaw_closure.xml"
+SETTLED = 0.1  # mm/s: the jaw has come to rest when no point of the mandible drifts faster over DRIFT_S
+DRIFT_S = 0.1  # s: contact chatter of a few µm averages out over this, a slide does not
 
 
 def _mesh_bvh(model, g):
@@ -40,17 +42,35 @@ def run_closure(model, *, seconds: float = 0.6, handle: Handle | None = None) ->
     n = int(round(seconds / model.opt.timestep))
     times = np.empty(n)
     ncon = np.empty(n, np.int64)
+    back = min(n - 1, int(round(DRIFT_S / model.opt.timestep)))
+    qpos_back = d.qpos.copy()
     for i in range(n):
         t = time.perf_counter()
         mujoco.mj_step(model, d)
         times[i] = time.perf_counter() - t
         ncon[i] = d.ncon
+        if i == n - 1 - back:
+            qpos_back = d.qpos.copy()
     gmx = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "maxilla")
     gmd = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "mandible")
     true_d = jawmod.coal_distance(_mesh_bvh(model, gmx), geom_pose(d, gmx), _mesh_bvh(model, gmd), geom_pose(d, gmd))
     coll = jawmod.coal_collides(_mesh_bvh(model, gmx), geom_pose(d, gmx), _mesh_bvh(model, gmd), geom_pose(d, gmd))
     q = d.qpos
     contacts = [c for c in d.contact[:d.ncon] if {c.geom1, c.geom2} == {gmx, gmd}]
+    # the fastest mandible point at the end: the slides' speed plus the hinge rate times the
+    # farthest vertex from the hinge axis
+    from ..mujoco.scene import mesh_of
+
+    V, _ = mesh_of(model, gmd)
+    P = geom_pose(d, gmd)
+    W = V @ P[:3, :3].T + P[:3, 3]
+    j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "hinge")
+    axis_pt, axis = d.xanchor[j], d.xaxis[j]
+    r = W - axis_pt
+    reach = float(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1).max())
+    speed = (abs(d.qvel[0]) * reach + float(np.linalg.norm(d.qvel[1:3]))) * 1e3
+    dq = d.qpos[:3] - qpos_back[:3]
+    drift = (abs(dq[0]) * reach + float(np.linalg.norm(dq[1:3]))) * 1e3 / max(back * model.opt.timestep, 1e-12)
     tail = times[n // 2:]  # settled half: the jaw is closed and clenching
     res = {
         "contacts": "ist" if handle is not None and handle.pairs else "native",
@@ -65,6 +85,9 @@ def run_closure(model, *, seconds: float = 0.6, handle: Handle | None = None) ->
         "final_hinge_deg": float(np.degrees(q[0])),
         "final_protrusion_mm": float(q[1] * 1e3),
         "final_lateral_mm": float(q[2] * 1e3),
+        "final_speed_mm_s": float(speed),
+        "drift_mm_s": float(drift),
+        "settled": bool(drift < SETTLED),
         "true_distance_mm": float(true_d * 1e3),
         "true_collision": bool(coll),
         "error_bound_mm": float(handle.pairs[0].error_bound * 1e3) if handle is not None and handle.pairs else None,
@@ -125,7 +148,9 @@ def format_summary(res: dict) -> str:
         f"speed         {res['step_us_median']:.1f} µs per mj_step median ({res['steps_per_second']:.0f} steps/s), "
         f"{res['step_us_median_closed']:.1f} µs once closed; {res['steps']} steps of {res['timestep'] * 1e3:g} ms",
         f"occlusion     hinge {res['final_hinge_deg']:+.3f}°, protrusion {res['final_protrusion_mm']:+.3f} mm, "
-        f"lateral {res['final_lateral_mm']:+.3f} mm (ground truth 0, 0, 0)",
+        f"lateral {res['final_lateral_mm']:+.3f} mm (ground truth 0, 0, 0); "
+        f"{'settled' if res['settled'] else 'still moving'} (drift {res['drift_mm_s']:.3f} mm/s over the last "
+        f"{DRIFT_S:g} s, {res['final_speed_mm_s']:.3f} mm/s in the last step)",
         f"true surfaces coal distance {res['true_distance_mm']:+.4f} mm, meshes intersect: {res['true_collision']}",
     ]
     if res.get("error_bound_mm") is not None:
@@ -151,6 +176,10 @@ def main(scene=None, data=None, native=False, seconds=0.6, out="out/demo", pictu
     print(f"scene         {scene} ready in {time.perf_counter() - t:.1f} s")
     res = run_closure(model, seconds=seconds, handle=handle)
     d = res.pop("_data")
+    meta = scene.parent / "pair.json"
+    if data is not None and meta.exists():  # the hinge the scene was made with, and how sure it is
+        j = json.loads(meta.read_text())
+        res["hinge"] = {"source": j["hinge_source"], "uncertainty_mm": j.get("hinge_uncertainty_mm")}
     print(format_summary(res))
     os.makedirs(out, exist_ok=True)
     tag = "native" if native else "ist"

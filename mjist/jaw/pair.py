@@ -239,7 +239,8 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
     info : dict
         ``mandible_pose`` (4x4, the occlusion: from ``occlusion.json`` when the folder has one,
         else where coal says the jaws first touch moving the mandible along up), ``hinge``
-        (mandible mesh coordinates) and ``hinge_source``, ``orientation``, ``arches`` (each
+        (mandible mesh coordinates), ``hinge_source`` and ``hinge_uncertainty`` (m, how far the
+        true condylar axis may be: about 10 mm for Bonwill's estimate), ``orientation``, ``arches`` (each
         arch's frame, ``arch.ArchFrame``), ``teeth_only`` and ``inertial`` (anatomical mass
         properties for a teeth-only mandible), ``paths``, ``notes`` (what was detected or repaired).
 
@@ -287,13 +288,16 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
     if hinge is not None:
         h = o.apply(np.asarray(hinge, float)[None], "maxilla")[0]
         info["hinge"], info["hinge_source"] = to_mesh[:3, :3] @ h + to_mesh[:3, 3], "given"
+        info["hinge_uncertainty"] = 0.0
     elif "hinge" in info:
-        info["hinge_source"] = "occlusion.json"
+        info["hinge_source"], info["hinge_uncertainty"] = "occlusion.json", 0.0
     elif teeth_only:
         h = arch.bonwill_hinge(frames["mandible"])
         info["hinge"], info["hinge_source"] = to_mesh[:3, :3] @ h + to_mesh[:3, 3], "Bonwill estimate"
+        info["hinge_uncertainty"] = arch.BONWILL_UNCERTAINTY
     else:
         info["hinge"], info["hinge_source"] = hinge_point(md.vertices), "condyles"
+        info["hinge_uncertainty"] = arch.CONDYLE_UNCERTAINTY
     if teeth_only:
         inertial = arch.anatomical_inertia(frames["mandible"])
         inertial["pos"] = to_mesh[:3, :3] @ inertial["pos"] + to_mesh[:3, 3]

@@ -178,7 +178,7 @@ def test_teeth_only_open_scan_runs_end_to_end(pairs, tmp_path):
             ck = cmap[name].check
             assert ck["sampled"] > 0 and ck["above_upper"] == 0 and ck["below_lower_outside"] == 0
             assert any(r["closest_mm"] < 0.05 for r in cmap[name].regions)
-        written = contactmap.write(cmap, occlusion.arch_frames(res["_model"], *(res["_handle"].geoms[k] for k in ("maxilla", "mandible"))),
+        written = contactmap.write(cmap, res["_pair"].frames,
                                    tmp_path / "map")
         assert len(written) == 5 and trimesh.load(written[0]).visual.vertex_colors.shape[1] == 4
     finally:
