@@ -37,6 +37,7 @@ STAGES = {
     "slide": ("bench_slide.py", ["--max-errors", "default", "--steps", "400"], [], "prefix"),
     "haptic": ("bench_haptic.py", ["--quick"], [], "prefix"),
     "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),
+    "real_occlusion": ("bench_real_occlusion.py", ["--seeds", "1", "--variants", "stored,bundled"], [], "prefix"),
     "cohort": ("bench_cohort.py", ["--patients", "2", "--spacing", "1.0", "--starts", "16", "--max-error", "0.001"], [], "prefix"),
 }
 
@@ -67,6 +68,11 @@ NOTES = {
                "against coal's deepest triangle-pair penetration."),
     "occlusion": ("Occlusion search", "Starts closed in mujoco.rollout threads, the whole search's time, and "
                   "the best candidate's distance from the designed occlusion."),
+    "real_occlusion": ("Real occlusions", "The default occlusion search on the shared CBCT pair as stored, "
+                       "cropped to its teeth in mm/+z and given open (8° about its hinge, 1 mm forward), and on the "
+                       "bundled pair, one search per seed: the best candidate's largest tooth-point shift and rotation "
+                       "from the stored occlusion, the rank of the right basin, the rank correlation of score and "
+                       "error over the settled starts, how often the search called itself ambiguous, its time."),
     "cohort": ("Cohorts", "A synthetic cohort (known occlusions) run by `mjist cohort` on local Ray with 1 and 2 "
                "workers, each run from an empty tree cache: patients per minute, the median time per stage, whether "
                "cohort.csv agrees across worker counts, each search's distance from its patient's design, and the "

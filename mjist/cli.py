@@ -107,6 +107,13 @@ def _pair_options(args) -> dict:
         if len(hinge) != 3:
             raise ValueError(f"--hinge {args.hinge!r}: give x,y,z in the maxilla file's coordinates and units")
     opts = {"units": args.units, "up": args.up, "hinge": hinge, "repair": args.repair}
+    files = (getattr(args, "maxilla_file", None), getattr(args, "mandible_file", None))
+    if any(files):
+        if not all(files):
+            raise ValueError("pass both --maxilla FILE and --mandible FILE (or --data FOLDER)")
+        if getattr(args, "data", None):
+            raise ValueError("pass either --data FOLDER or --maxilla FILE --mandible FILE, not both")
+        opts["maxilla"], opts["mandible"] = files
     if getattr(args, "tmj", None) is not None:
         opts["tmj"] = args.tmj == "on"
     return opts
@@ -269,7 +276,7 @@ def _add_demo(sub) -> None:
     dm.add_argument("--out-dir", default="out/demo", help="summary JSON and picture (default out/demo)")
     dm.add_argument("--no-picture", action="store_true", help="skip the rendering")
     dm.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    _add_pair_options(dm)
+    _add_pair_options(dm, files=True)
     dm.set_defaults(func=_cmd_demo)
 
 
@@ -305,7 +312,7 @@ def _add_haptic(sub) -> None:
     hp.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
     hp.add_argument("--out-dir", default="out/haptic", help="log (.npz), summary (.json) and plot (.png)")
     hp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    _add_pair_options(hp)
+    _add_pair_options(hp, files=True)
     hp.set_defaults(func=_cmd_haptic)
 
 
@@ -322,13 +329,18 @@ def _add_occlusion(sub) -> None:
     oc.add_argument("--out-dir", default="out/occlusion", help="occlusion.json, landscape.png, best.png")
     oc.add_argument("--no-contact-map", action="store_true", help="skip the occlusal contact map of the best pose")
     oc.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    _add_pair_options(oc, tmj=True)
+    _add_pair_options(oc, tmj=True, files=True)
     oc.set_defaults(func=_cmd_occlusion)
 
 
-def _add_pair_options(p, tmj: bool = False) -> None:
-    """Options for a user's jaw pair: units, up axis, hinge, repair (all detected by default)."""
+def _add_pair_options(p, tmj: bool = False, files: bool = False) -> None:
+    """Options for a user's jaw pair: units, up axis, hinge, repair (all detected by default);
+    with ``files``, ``--maxilla FILE --mandible FILE`` instead of ``--data FOLDER``."""
     g = p.add_argument_group("jaw pair (with --data or mjist scene)")
+    if files:
+        g.add_argument("--maxilla", dest="maxilla_file", metavar="FILE",
+                       help="the upper arch's mesh, named outright (with --mandible, instead of --data)")
+        g.add_argument("--mandible", dest="mandible_file", metavar="FILE", help="the lower arch's mesh (with --maxilla)")
     g.add_argument("--units", default="auto", help="auto (default), mm, m, or mm,m for a maxilla and mandible stored differently")
     g.add_argument("--up", default="auto", choices=("auto", "+x", "-x", "+y", "-y", "+z", "-z"),
                    help="file axis pointing superior (default: detected from how the jaws open)")

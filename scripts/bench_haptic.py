@@ -40,7 +40,7 @@ def coal_depth(ba, Pa, bb, Pb) -> float:
     req.enable_contact = True
     req.num_max_contacts = 1 << 20
     res = coal.CollisionResult()
-    coal.collide(ba, jawmod._tf(Pa), bb, jawmod._tf(Pb), req, res)
+    coal.collide(ba, jawmod.coal_transform(Pa), bb, jawmod.coal_transform(Pb), req, res)
     return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
 
 

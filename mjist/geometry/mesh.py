@@ -101,8 +101,20 @@ def _finite(tm) -> trimesh.Trimesh:
         )
     tm = trimesh.Trimesh(v, f, process=False)
     # geometric merge only (OBJ normals/uvs and STL soups split vertices)
-    tm.merge_vertices(merge_tex=True, merge_norm=True)
+    tm.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=_merge_digits(v))
     return tm
+
+
+MERGE_RELATIVE = 1e-12  # vertices closer than this times the mesh size are one vertex (coincident copies)
+
+
+def _merge_digits(V) -> int:
+    """Decimal digits for merging coincident vertices: trimesh's default merges within 1e-8 in the
+    file's units (10 nm in metres), which fuses two distinct vertices of a fine mesh in metres
+    into zero-area faces; a tolerance relative to the mesh size keeps every distinct vertex and
+    still joins the copies STL soups and OBJ normals make."""
+    size = float(np.ptp(np.asarray(V, float), axis=0).max()) if len(V) else 1.0
+    return int(np.clip(np.ceil(-np.log10(MERGE_RELATIVE * max(size, 1e-300))), 0, 300))
 
 
 def _drop_degenerate(tm, scale: float, repair: bool, repairs: list) -> None:
@@ -122,7 +134,7 @@ def _drop_degenerate(tm, scale: float, repair: bool, repairs: list) -> None:
     tm.update_faces(~degenerate)
     tm.remove_unreferenced_vertices()
     repairs.append(f"removed {int(degenerate.sum())} degenerate faces")
-    tm.merge_vertices(merge_tex=True, merge_norm=True)
+    tm.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=_merge_digits(tm.vertices))
 
 
 def _edge_defects(tm) -> tuple[int, int]:
@@ -223,3 +235,21 @@ def load_mesh(mesh, *, repair: bool = False) -> Mesh:
         repairs=repairs,
         closure=closure,
     )
+
+
+def single_precision(V, F) -> tuple[np.ndarray, np.ndarray, int]:
+    """The mesh as a float32 reader (MuJoCo's compiler) will see it, cleaned of what that rounding
+    makes: vertices that round to one float32 point become one vertex, and the zero-area faces
+    this leaves are removed (each is a sliver between two such vertices, so the surface stays
+    closed). Returns ``(V, F, faces removed)``; ``V`` holds float32-exact coordinates.
+    """
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    V32 = V.astype(np.float32)
+    _, first, inverse = np.unique(V32, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    if len(first) == len(V):
+        return V32.astype(np.float64), F, 0
+    G = inverse[F]
+    keep = (G[:, 0] != G[:, 1]) & (G[:, 1] != G[:, 2]) & (G[:, 0] != G[:, 2])
+    return V32[first].astype(np.float64), G[keep], int((~keep).sum())

@@ -39,7 +39,10 @@ BALKWILL_DEG = 26.0  # angle between the Bonwill triangle and the occlusal plane
 # Bonwill's 100 mm, Balkwill's angle by about 5°; a fit to the condyles themselves is within a millimetre
 BONWILL_UNCERTAINTY = 0.010
 CONDYLE_UNCERTAINTY = 0.001
-RAMUS_HEIGHT = 0.015  # m: a mandible reaching this far above its occlusal plane has rami and condyles
+RAMUS_HEIGHT = 0.015
+# a dental arch runs 35-55 mm front to back; the first contact of a pair given open (condyles in
+# their fossae) spans under 20 mm: points this shallow are not the teeth meeting
+ARCH_MIN_DEPTH = 0.025  # m: a mandible reaching this far above its occlusal plane has rami and condyles
 # a whole adult mandible (the shared CBCT mandible, bone density 1900 kg/m^3): mass, inertia
 # about its centre of mass (jaw-frame axes x left, y up, z anterior: ixx iyy izz ixy ixz iyz)
 # and the centre of mass relative to the lower incisal point (jaw frame)
@@ -183,6 +186,18 @@ def occlusal_points(V, other_V, other_F, reach: float = 3e-3, up=None) -> np.nda
     h = P @ (np.asarray(up, float) / np.linalg.norm(up))
     closest = np.argsort(d, kind="stable")[:max(1, len(d) // 10)]
     return P[np.abs(h - np.median(h[closest])) < BAND]
+
+
+def facing_band(V, F, direction) -> np.ndarray:
+    """Vertices of ``(V, F)`` facing ``direction`` within ``BAND`` of the surface's extreme along it:
+    a maxilla's occlusal surface for ``direction`` down, wherever the mandible is."""
+    import trimesh
+
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    V = np.asarray(V, float)
+    h = V @ d
+    facing = trimesh.Trimesh(V, F, process=False).vertex_normals @ d > 0.5
+    return V[facing & (h > h.max() - BAND)]
 
 
 def has_rami(mandible_V, frame: ArchFrame) -> bool:

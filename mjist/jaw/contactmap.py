@@ -74,7 +74,7 @@ def _exact(V_other, F_other, points) -> np.ndarray:
     import coal
 
     from ..geometry.bvh import BVH
-    from .pair import coal_bvh
+    from .exact import coal_bvh
 
     bvh = coal_bvh(V_other, F_other)
     dot, I, req = coal.Sphere(1e-12), coal.Transform3s(), coal.DistanceRequest()

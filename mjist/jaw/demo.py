@@ -164,7 +164,7 @@ def main(scene=None, data=None, native=False, seconds=0.6, out="out/demo", pictu
     """``mjist demo``: ``data`` is a jaw-pair folder read with ``pair`` options (units, up, hinge,
     repair: ``scenes.pair_scene``)."""
     out = Path(out)
-    if data is not None:
+    if data is not None or (pair or {}).get("maxilla"):
         scene = pair_scene(data, out, "closure", progress=progress, **(pair or {}))
     scene = Path(scene or SCENE)
     t = time.perf_counter()
@@ -177,7 +177,7 @@ def main(scene=None, data=None, native=False, seconds=0.6, out="out/demo", pictu
     res = run_closure(model, seconds=seconds, handle=handle)
     d = res.pop("_data")
     meta = scene.parent / "pair.json"
-    if data is not None and meta.exists():  # the hinge the scene was made with, and how sure it is
+    if (data is not None or (pair or {}).get("maxilla")) and meta.exists():  # the hinge the scene was made with, and how sure it is
         j = json.loads(meta.read_text())
         res["hinge"] = {"source": j["hinge_source"], "uncertainty_mm": j.get("hinge_uncertainty_mm")}
     print(format_summary(res))

@@ -292,7 +292,7 @@ def plot(log: dict, out, title: str = "") -> str:
 def main(scene=None, trajectory: str = "chewing", law: str | None = None, seconds: float | None = None,
          out="out/haptic", progress: bool = True, data=None, pair: dict | None = None) -> int:
     """``mjist haptic``: ``data`` is a jaw-pair folder read with ``pair`` options (``scenes.pair_scene``)."""
-    if data is not None:
+    if data is not None or (pair or {}).get("maxilla"):
         scene = pair_scene(data, out, "haptic", progress=progress, **(pair or {}))
     scene = Path(scene or SCENE)
     settings = {"penalty": law} if law else {}

@@ -158,7 +158,7 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         start: settled pose, score, settle figures, error against the reference), timings,
         ``arches`` (both arch frames), ``error_bound_mm`` of the IST trees used to close.
     """
-    if data is not None:
+    if data is not None or (pair or {}).get("maxilla"):
         scene = pair_scene(data, out_dir or "out/occlusion", "occlusion", progress=progress, **(pair or {}))
     scene = Path(scene or SCENE)
     t0 = time.perf_counter()

@@ -120,7 +120,7 @@ def scales(unit: str) -> tuple[float, float]:
 
 
 def _collides(bvh_a, bvh_b, t) -> bool:
-    from .pair import coal_collides
+    from .exact import coal_collides
 
     P = np.eye(4)
     P[:3, 3] = t
@@ -128,7 +128,7 @@ def _collides(bvh_a, bvh_b, t) -> bool:
 
 
 def _gap(bvh_a, bvh_b, t) -> float:
-    from .pair import coal_distance
+    from .exact import coal_distance
 
     P = np.eye(4)
     P[:3, 3] = t
@@ -196,6 +196,30 @@ def touch_offset(bvh_maxilla, bvh_mandible, up, reach: float = REACH, tol: float
         else:
             b = m
     return b
+
+
+def hinge_touch(bvh_maxilla, bvh_mandible, hinge, reach_deg: float = 25.0, tol_deg: float = 1e-4) -> float:
+    """Turn (rad, negative closes) about the jaw frame's x axis through ``hinge`` at which a mandible
+    held apart at its file pose first touches the maxilla (coal). Raises ``ValueError`` when it
+    touches already or not within ``reach_deg``."""
+    from .exact import coal_collides
+    from .pair import hinge_pose
+
+    def hit(deg):
+        return coal_collides(bvh_maxilla, np.eye(4), bvh_mandible, hinge_pose(np.radians(deg), hinge))
+
+    if hit(0.0):
+        raise ValueError("the jaws already touch at the stored pose: nothing to close")
+    apart, touching = 0.0, -reach_deg
+    if not hit(touching):
+        raise ValueError(f"the mandible does not reach the maxilla closing {reach_deg:g}° about its condyles")
+    while apart - touching > tol_deg:
+        mid = 0.5 * (apart + touching)
+        if hit(mid):
+            touching = mid
+        else:
+            apart = mid
+    return float(np.radians(apart))
 
 
 def frame_matrix(up: str, anterior) -> np.ndarray:

@@ -6,10 +6,10 @@ pose); the mandible moves.
 """
 from __future__ import annotations
 
-import coal
 import numpy as np
 
 from . import BUNDLED
+from .exact import coal_bvh, coal_collides, coal_distance, coal_transform  # noqa: F401  (the pair's exact reference)
 
 UP, ANTERIOR = 1, 2
 
@@ -59,36 +59,6 @@ def hinge_pose(theta, hinge, lateral=0.0, protrusion=0.0, vertical=0.0) -> np.nd
     return P
 
 
-def coal_bvh(vertices, faces) -> coal.BVHModelOBBRSS:
-    """coal's OBBRSS BVH of a triangle mesh (the exact reference)."""
-    b = coal.BVHModelOBBRSS()
-    b.beginModel(len(faces), len(vertices))
-    b.addVertices(np.ascontiguousarray(vertices, dtype=np.float64))
-    b.addTriangles(np.ascontiguousarray(faces, dtype=np.int64))
-    b.endModel()
-    return b
-
-
-def _tf(P):
-    return coal.Transform3s(np.ascontiguousarray(P[:3, :3]), np.ascontiguousarray(P[:3, 3]))
-
-
-def coal_distance(bvh_a, pose_a, bvh_b, pose_b) -> float:
-    """Exact mesh distance (coal); ≤ 0 when the meshes intersect."""
-    return coal.distance(bvh_a, _tf(pose_a), bvh_b, _tf(pose_b), coal.DistanceRequest(), coal.DistanceResult())
-
-
-def coal_collides(bvh_a, pose_a, bvh_b, pose_b, tol: float | None = None) -> bool:
-    """coal's collision test; ``tol`` sets its GJK tolerance (default 1e-6: meshes closer than
-    about 1 µm count as touching)."""
-    req = coal.CollisionRequest()
-    if tol is not None:
-        req.gjk_tolerance = tol
-    res = coal.CollisionResult()
-    coal.collide(bvh_a, _tf(pose_a), bvh_b, _tf(pose_b), req, res)
-    return res.isCollision()
-
-
 def touching_offset(bvh_maxilla, bvh_mandible, max_open=0.01, tol=1e-6) -> float:
     """Vertical mandible offset (m) at which the two meshes just touch, on the separated side:
     ``orient.touch_offset`` along the jaw frame's +y, within ``±max_open`` of the stored pose."""
@@ -135,13 +105,40 @@ def _find(folder, maxilla, mandible) -> dict:
                 raise FileNotFoundError(f"{name} mesh {p} does not exist: check the path")
         return paths
     folder = Path(folder) if folder is not None else BUNDLED
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder} is not a folder: pass the folder of a jaw pair (or --maxilla FILE --mandible FILE)")
+    meshes = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
     paths = {}
     for name in ("maxilla", "mandible"):
-        found = [folder / f"{name}{ext}" for ext in (".obj", ".stl", ".ply") if (folder / f"{name}{ext}").exists()]
+        exact = [p for p in meshes if p.stem.lower() == name]  # maxilla.obj wins over any other name
+        found = exact or [p for p in meshes if arch_of(p.name) == name]
+        if len(found) > 1:
+            raise ValueError(f"several {name} meshes in {folder}: {', '.join(p.name for p in found)}; keep one, or name "
+                             "them outright with --maxilla FILE --mandible FILE")
         if not found:
-            raise FileNotFoundError(f"no {name}.obj/.stl/.ply in {folder}: pass the folder of a jaw pair")
+            saw = ", ".join(p.name for p in meshes) or "no STL/OBJ/PLY file"
+            raise FileNotFoundError(f"no {name} mesh in {folder} (saw: {saw}): name the arches upper/lower, maxilla/mandible, "
+                                    "maxillary/mandibular or UpperJaw/LowerJaw, or pass --maxilla FILE --mandible FILE")
         paths[name] = found[0]
     return paths
+
+
+MESH_SUFFIXES = (".obj", ".stl", ".ply")
+# how scanners, labs and segmentation tools name the arches (any case, any prefix or suffix)
+ARCH_WORDS = {"maxilla": ("maxilla", "maxillary", "upper", "oberkiefer"),
+              "mandible": ("mandible", "mandibular", "lower", "unterkiefer")}
+
+
+def arch_of(filename: str) -> str | None:
+    """"maxilla", "mandible" or None for a mesh file name (``Case12_UpperJaw.stl`` → "maxilla").
+
+    A name naming both arches (or neither) is None; mjist's own exports (``*.jaw.obj``) are skipped.
+    """
+    stem = filename.lower()
+    if stem.endswith(".jaw.obj"):
+        return None
+    hits = {arch for arch, words in ARCH_WORDS.items() if any(w in stem for w in words)}
+    return hits.pop() if len(hits) == 1 else None
 
 
 def _load(path, name: str, repair: str):
@@ -200,6 +197,10 @@ def _orientation(mx, md, units, up, notes: list):
     touch = orient.touch_offset(bx, bd, u)
     pts = arch.occlusal_points(Vx, Vd + touch * u, md.faces, up=u)
     fx = arch.arch_frame(pts, u)
+    if fx.depth < arch.ARCH_MIN_DEPTH:  # they first meet outside the teeth (condyles in their fossae, a pair given open)
+        fx = arch.arch_frame(arch.facing_band(Vx, mx.faces, -u), u)
+        notes.append("the jaws first meet outside the teeth moving the mandible up (given open?): the arch's front "
+                     "comes from the maxilla's occlusal surface")
     anterior = orient.snap(fx.anterior, up_axis)
     detected = {}
     if str(units) == "auto":
@@ -212,6 +213,28 @@ def _orientation(mx, md, units, up, notes: list):
     notes.append(f"units {unit}{' (detected)' if 'units' in detected else ''}, up {up_axis}"
                  f"{' (detected)' if 'up' in detected else ''}, anterior {ant} (from the arch's shape)")
     return o, touch
+
+
+def _closed_about_condyles(mx, md, pose, notes: list, info: dict) -> np.ndarray:
+    """The occlusion of a pair whose first contact moving the mandible up is not at the teeth (the
+    condyles meet their fossae first: a pair given open): the mandible turned closed about its
+    condyles from its stored pose to coal's first touch. Other pairs keep ``pose``."""
+    from . import arch, orient
+
+    Vd = md.vertices @ pose[:3, :3].T + pose[:3, 3]
+    up_j = np.array([0.0, 1.0, 0.0])
+    if arch.arch_frame(arch.occlusal_points(mx.vertices, Vd, md.faces, up=up_j), up_j).depth >= arch.ARCH_MIN_DEPTH:
+        return pose
+    fx = arch.arch_frame(arch.facing_band(mx.vertices, mx.faces, -up_j), up_j)
+    if not arch.has_rami(md.vertices, fx):
+        raise ValueError("the jaws meet outside the teeth when the mandible moves up and the mandible has no condyles "
+                         "to close it about: place the arches in occlusion (or pass --hinge)")
+    h = hinge_point(md.vertices)
+    turn = orient.hinge_touch(coal_bvh(mx.vertices, mx.faces), coal_bvh(md.vertices, md.faces), h)
+    notes.append(f"the jaws first meet outside the teeth moving the mandible up: closed {-np.degrees(turn):.2f}° about "
+                 "its condyles to where the teeth first touch (coal)")
+    info["source"] = "coal first touch closing about the condyles"
+    return hinge_pose(turn, h)
 
 
 def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None, repair="auto"):
@@ -272,8 +295,10 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
             info = {"mandible_pose": S @ np.array(j["mandible_pose"]) @ np.linalg.inv(S), "source": str(meta),
                     "hinge": o.apply(np.array(j["hinge"])[None], "mandible")[0]}
     pose = info["mandible_pose"]
-    Vd_occ = md.vertices @ pose[:3, :3].T + pose[:3, 3]
     up_j = (0.0, 1.0, 0.0)
+    if info["source"] == "coal first touch":
+        pose = info["mandible_pose"] = _closed_about_condyles(mx, md, pose, notes, info)
+    Vd_occ = md.vertices @ pose[:3, :3].T + pose[:3, 3]
     frames = {"maxilla": arch.arch_frame(arch.occlusal_points(mx.vertices, Vd_occ, md.faces, up=up_j), up_j),
               "mandible": arch.arch_frame(arch.occlusal_points(Vd_occ, mx.vertices, mx.faces, up=up_j), up_j)}
     if up == "auto":  # the file names say which jaw is upper; a maxilla with rami is a mandible

@@ -329,24 +329,48 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
     path = Path(output) if output else Path(out_dir) / KINDS[kind]
     os.makedirs(path.parent, exist_ok=True)
     files = {k: os.path.abspath(v) for k, v in info["paths"].items()}
-    if info["export"]:
+    pose = np.asarray(info["mandible_pose"], float)
+    hinge_mesh = np.asarray(info["hinge"], float)
+    Vd = md.vertices
+    if not np.allclose(pose[:3, :3], np.eye(3), atol=1e-12):
+        # the scenes place the mandible at its occlusion by a translation: an occlusion that turns
+        # it (a pair closed about its condyles) is baked into the mandible's vertices instead
+        Vd = md.vertices @ pose[:3, :3].T + pose[:3, 3]
+        hinge_mesh = pose[:3, :3] @ hinge_mesh + pose[:3, 3]
+        if info.get("inertial") is not None:
+            i = dict(info["inertial"])
+            i["pos"] = pose[:3, :3] @ np.asarray(i["pos"]) + pose[:3, 3]
+            i["inertia"] = pose[:3, :3] @ np.asarray(i["inertia"]) @ pose[:3, :3].T
+            info["inertial"] = i
+        pose = np.eye(4)
+    if info["export"] or Vd is not md.vertices:
         import trimesh
 
-        for name, m in (("maxilla", mx), ("mandible", md)):
+        from ..geometry.mesh import single_precision
+
+        for name, V, F in (("maxilla", mx.vertices, mx.faces), ("mandible", Vd, md.faces)):
             files[name] = os.path.abspath(path.parent / f"{name}.jaw.obj")
-            trimesh.Trimesh(m.vertices, m.faces, process=False).export(files[name])
+            # MuJoCo reads vertices as float32: two distinct vertices closer than that resolution
+            # (a few nm in metres) would become one and leave zero-area faces its tree build
+            # refuses; the mesh is written as MuJoCo will see it, cleaned of those slivers, at
+            # full precision (the exporter's default 8 decimals would round them together too)
+            V, F, removed = single_precision(V, F)
+            if removed:
+                info["notes"].append(f"{name}: {removed} zero-area faces removed where vertices closer than MuJoCo's "
+                                     "float32 resolution become one")
+            trimesh.Trimesh(V, F, process=False).export(files[name], digits=17)
     kwargs.setdefault("max_error", 3e-4)
     if kind == "closure":
-        kwargs.setdefault("half_width", 0.045 if info["teeth_only"] else muscle_half_width(md.vertices))
+        kwargs.setdefault("half_width", 0.045 if info["teeth_only"] else muscle_half_width(Vd))
         kwargs.setdefault("condylar_stop", True)
     if kind == "occlusion":
         kwargs.setdefault("tmj", bool(tmj))
     kwargs.setdefault("inertial", info.get("inertial"))
-    hinge_world = np.asarray(info["mandible_pose"])[:3, :3] @ np.asarray(info["hinge"], float) + np.asarray(info["mandible_pose"])[:3, 3]
+    hinge_world = pose[:3, :3] @ hinge_mesh + pose[:3, 3]
     kwargs.setdefault("hinge_note", f"{info['hinge_source']}, centre {_v(hinge_world * 1e3)} mm (jaw frame), "
                                     f"uncertain by about {info['hinge_uncertainty'] * 1e3:g} mm")
     title = f"jaw pair of {folder}" if maxilla is None else f"jaw pair {maxilla} + {mandible}"
-    xml = writers[kind](files["maxilla"], files["mandible"], np.asarray(info["hinge"], float), info["mandible_pose"][:3, 3],
+    xml = writers[kind](files["maxilla"], files["mandible"], hinge_mesh, pose[:3, 3],
                         title=title, **kwargs)
     path.write_text(xml)
     summary = {"scene": str(path), "kind": kind, "meshes": files, "hinge": np.asarray(info["hinge"]).tolist(),

@@ -62,7 +62,8 @@ def test_bad_patient_is_an_error_row_and_the_others_finish(two_workers):
     assert "broken" in rows["broken"]["error"] or "maxilla" in rows["broken"]["error"]
     for name in GOOD:
         r = rows[name]
-        assert r["status"] == "ok" and r["both_sides"] == "True" and float(r["design_max_mm"]) < 2.0
+        assert r["status"] == "ok" and r["both_sides"] in ("True", "False") and float(r["design_max_mm"]) < 2.0
+        assert 0.0 < float(r["interocclusal_mm"]) < 6.0 and r["settled"] in ("True", "False")  # 2 x the 3 mm cap at most
         for f in ("occlusion.json", "landscape.png", "contact_map.json", "contact_map_maxilla.png", "result.json"):
             assert (out / "patients" / name / f).exists(), f
     assert (out / "cohort.png").exists()

@@ -100,7 +100,7 @@ def _max_depth(bx, bd, P):
     req.enable_contact = True
     req.num_max_contacts = 1000
     res = coal.CollisionResult()
-    coal.collide(bx, jaw._tf(np.eye(4)), bd, jaw._tf(P), req, res)
+    coal.collide(bx, jaw.coal_transform(np.eye(4)), bd, jaw.coal_transform(P), req, res)
     return max(res.getContact(i).penetration_depth for i in range(res.numContacts()))
 
 

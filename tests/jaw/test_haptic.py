@@ -91,7 +91,7 @@ def _coal_depth(bvh, Pmx, Pmd):
     req.enable_contact = True
     req.num_max_contacts = 1 << 20
     res = coal.CollisionResult()
-    coal.collide(bvh[0], jawmod._tf(Pmx), bvh[1], jawmod._tf(Pmd), req, res)
+    coal.collide(bvh[0], jawmod.coal_transform(Pmx), bvh[1], jawmod.coal_transform(Pmd), req, res)
     return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
 
 

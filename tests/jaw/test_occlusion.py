@@ -56,13 +56,44 @@ def test_cli_writes_candidates_and_plots(cache, tmp_path, monkeypatch):
     assert j["starts"] == 4 and j["candidates"] and (tmp_path / "landscape.png").stat().st_size > 0
 
 
-def test_real_pair_settles_near_its_stored_occlusion(cache, tmp_path):
+def test_real_pair_search_finds_its_stored_occlusion(cache, tmp_path):
+    """The shared CBCT pair, default search settings but 32 starts: the best basin is the stored
+    occlusion (largest tooth-point shift, scripts/bench_real_occlusion.py has the 64-start figures),
+    and across the settled starts a better score means a smaller error."""
     folder = shared_path("jaw")
-    res = occlusion.search(data=folder, starts=6, seed=0, threads=2, progress=False, cache_dir=cache, out_dir=tmp_path)
+    res = occlusion.search(data=folder, starts=32, seed=0, threads=2, progress=False, cache_dir=cache, out_dir=tmp_path)
     res["_handle"].detach()
-    e = res["candidates"][0]["error"]
-    print("real pair, best vs stored occlusion:", e)
-    assert e["rotation_deg"] < 3.0 and e["max_mm"] < 2.0  # consistent with the stored pose (difference reported)
+    best = res["candidates"][0]
+    print("real pair, best vs stored occlusion:", best["error"], "rank correlation", res["rank_correlation"])
+    assert best["error"]["max_mm"] < 0.35 and best["error"]["rotation_deg"] < 0.5
+    assert res["rank_correlation"] < -0.5
+    assert best["settled"] and abs(best["coal_distance_mm"]) < 1e-3  # at rest, at zero penetration
+
+
+def test_settling_is_reported_and_a_short_budget_says_so(cache):
+    """Every start reports whether it settled, its drift and last step; with too little closing
+    time nothing settles, and the candidates say so rather than passing for rest positions."""
+    res = _run(cache, starts=4, seed=2, threads=2, seconds=0.05, polish=0)
+    assert res["settled"] == 0 and not any(c["settled"] for c in res["candidates"])
+    for row in res["landscape"]:
+        assert not row["settled"] and row["seconds"] == pytest.approx(0.05) and row["drift_mm_s"] > occlusion.SETTLED
+        assert np.isfinite(row["last_step_mm"]) and not row["unstable"]
+    res = _run(cache, starts=4, seed=2, threads=2, polish=0)
+    assert res["settled"] >= 1 and all(r["seconds"] <= res["max_seconds"] + 1e-9 for r in res["landscape"])
+    assert [r["settled"] for r in res["landscape"]].count(True) == res["settled"]
+
+
+def test_confidence_says_ambiguous_within_the_spread():
+    from mjist.jaw.ranking import Candidate
+
+    def cand(score, spread, starts):
+        return Candidate(1, score, np.zeros(3), np.array([1.0, 0, 0, 0]), starts, -score, 0.0, score_spread=spread)
+
+    clear = occlusion._confidence([cand(-1.00, 0.002, 9), cand(-1.05, 0.003, 4)])
+    assert not clear["ambiguous"] and clear["margin_mm"] == pytest.approx(0.05) and clear["basin_starts"] == [9, 4]
+    close = occlusion._confidence([cand(-1.00, 0.02, 9), cand(-1.01, 0.003, 4)])
+    assert close["ambiguous"] and close["uncertainty_mm"] == pytest.approx(0.02)
+    assert not occlusion._confidence([cand(-1.0, 0.0, 3)])["ambiguous"]
 
 
 def test_points_distance_matches_brute_force():

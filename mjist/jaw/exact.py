@@ -1,0 +1,36 @@
+"""The exact reference for a jaw pair: coal's BVH distance and collision on the meshes."""
+from __future__ import annotations
+
+import coal
+import numpy as np
+
+
+def coal_bvh(vertices, faces) -> coal.BVHModelOBBRSS:
+    """coal's OBBRSS BVH of a triangle mesh (the exact reference)."""
+    b = coal.BVHModelOBBRSS()
+    b.beginModel(len(faces), len(vertices))
+    b.addVertices(np.ascontiguousarray(vertices, dtype=np.float64))
+    b.addTriangles(np.ascontiguousarray(faces, dtype=np.int64))
+    b.endModel()
+    return b
+
+
+def coal_transform(P) -> coal.Transform3s:
+    """A 4x4 pose as coal's transform."""
+    return coal.Transform3s(np.ascontiguousarray(P[:3, :3]), np.ascontiguousarray(P[:3, 3]))
+
+
+def coal_distance(bvh_a, pose_a, bvh_b, pose_b) -> float:
+    """Exact mesh distance (coal); ≤ 0 when the meshes intersect."""
+    return coal.distance(bvh_a, coal_transform(pose_a), bvh_b, coal_transform(pose_b), coal.DistanceRequest(), coal.DistanceResult())
+
+
+def coal_collides(bvh_a, pose_a, bvh_b, pose_b, tol: float | None = None) -> bool:
+    """coal's collision test; ``tol`` sets its GJK tolerance (default 1e-6: meshes closer than
+    about 1 µm count as touching)."""
+    req = coal.CollisionRequest()
+    if tol is not None:
+        req.gjk_tolerance = tol
+    res = coal.CollisionResult()
+    coal.collide(bvh_a, coal_transform(pose_a), bvh_b, coal_transform(pose_b), req, res)
+    return res.isCollision()
