@@ -228,6 +228,10 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
             "landscape": [_landscape_row(jp, X[i], final[i], judged[i], settle[i]) for i in range(len(X))],
         }
         res["rank_correlation"] = rank_correlation(res["landscape"])
+        meta = scene.parent / "pair.json"
+        if meta.exists():  # a scene made from a user's pair: where its hinge came from, how sure it is
+            j = json.loads(meta.read_text())
+            res["hinge_source"], res["hinge_uncertainty_mm"] = j.get("hinge_source"), j.get("hinge_uncertainty_mm")
         res["_model"], res["_handle"], res["_pair"] = model, handle, jp
         return res
     except Exception:
