@@ -181,7 +181,7 @@ def _cmd_occlusion(args) -> int:
     return _user_errors("occlusion", lambda: occlusion.main(
         scene=args.scene, data=args.data, starts=args.starts, translation=args.translation, rotation_deg=args.rotation,
         threads=args.threads, seed=args.seed, top=args.top, out=args.out_dir, progress=not args.quiet,
-        pair=_pair_options(args), contact_map=not args.no_contact_map))
+        pair=_pair_options(args), contact_map=not args.no_contact_map, picture=not args.no_picture))
 
 
 def _cmd_scene(args) -> int:
@@ -328,6 +328,7 @@ def _add_occlusion(sub) -> None:
     oc.add_argument("--top", type=int, default=5, help="candidates to report (default 5)")
     oc.add_argument("--out-dir", default="out/occlusion", help="occlusion.json, landscape.png, best.png")
     oc.add_argument("--no-contact-map", action="store_true", help="skip the occlusal contact map of the best pose")
+    oc.add_argument("--no-picture", action="store_true", help="skip the rendering of the best pose (no GL needed)")
     oc.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     _add_pair_options(oc, tmj=True, files=True)
     oc.set_defaults(func=_cmd_occlusion)

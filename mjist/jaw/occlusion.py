@@ -447,7 +447,7 @@ def write_contact_map(res: dict, out_dir) -> tuple[dict, list[str]]:
 
 
 def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, threads=None, seed=0, top=5,
-         out="out/occlusion", progress=True, pair: dict | None = None, contact_map: bool = True) -> int:
+         out="out/occlusion", progress=True, pair: dict | None = None, contact_map: bool = True, picture: bool = True) -> int:
     res = search(scene, data=data, starts=starts, translation=translation, rotation_deg=rotation_deg,
                  threads=threads, seed=seed, top=top, progress=progress, out_dir=out, pair=pair)
     try:
@@ -465,7 +465,7 @@ def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, t
             verdict = "AMBIGUOUS: #1 and #2 are within the scores' spread" if conf["ambiguous"] else "clear"
             print(f"confidence    margin to #2 {conf['margin_mm']:.4f} mm (spread {conf['uncertainty_mm']:.4f} mm; basins of "
                   f"{conf['basin_starts'][0]} and {conf['basin_starts'][1]} starts): {verdict}")
-        written = write_outputs(res, out)
+        written = write_outputs(res, out, picture=picture)
         if contact_map and res["candidates"]:
             cmap, files = write_contact_map(res, out)
             written += files

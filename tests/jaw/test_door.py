@@ -1,6 +1,4 @@
 """Arch files as labs name them, named outright, and conversions that keep a valid mesh valid."""
-import shutil
-
 import numpy as np
 import pytest
 import trimesh
@@ -38,18 +36,24 @@ def test_folder_of_lab_names_and_ambiguous_or_missing_ones(tmp_path):
 def test_lab_named_pair_goes_through_the_occlusion_search(tmp_path, cache, monkeypatch):
     """`mjist occlusion --data` on a folder of Case12_UpperJaw.stl / Case12_LowerJaw.stl, no flags;
     and the same files named outright with --maxilla/--mandible."""
+    import json
+
+    from mjist.jaw import generator
+
     folder = tmp_path / "case12"
     folder.mkdir()
-    for src, dst in (("maxilla.obj", "Case12_UpperJaw.obj"), ("mandible.obj", "Case12_LowerJaw.obj")):
-        shutil.copy(BUNDLED / src, folder / dst)
-    shutil.copy(BUNDLED / "occlusion.json", folder / "occlusion.json")
+    maxilla, mandible, meta = generator.generate(1.0)  # the designed jaws at 1 mm spacing: quick trees
+    maxilla.export(folder / "Case12_UpperJaw.obj")
+    mandible.export(folder / "Case12_LowerJaw.obj")
+    (folder / "occlusion.json").write_text(json.dumps({"mandible_pose": np.eye(4).tolist(), "hinge": list(meta["hinge"])}))
     monkeypatch.setenv("MJIST_CACHE", cache)
     out = tmp_path / "occ"
-    assert cli.main(["occlusion", "--data", str(folder), "--starts", "4", "--out-dir", str(out), "-q", "--no-contact-map"]) == 0
+    assert cli.main(["occlusion", "--data", str(folder), "--starts", "4", "--out-dir", str(out), "-q", "--no-contact-map",
+                     "--no-picture"]) == 0
     assert (out / "occlusion.json").exists()
     named = tmp_path / "named"
     assert cli.main(["occlusion", "--maxilla", str(folder / "Case12_UpperJaw.obj"), "--mandible", str(folder / "Case12_LowerJaw.obj"),
-                     "--starts", "4", "--out-dir", str(named), "-q", "--no-contact-map"]) == 0
+                     "--starts", "4", "--out-dir", str(named), "-q", "--no-contact-map", "--no-picture"]) == 0
     assert (named / "occlusion.json").exists()
     assert cli.main(["occlusion", "--maxilla", str(folder / "Case12_UpperJaw.obj"), "-q"]) == 1  # both or neither
 
