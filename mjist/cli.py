@@ -397,7 +397,8 @@ def _add_bench(sub) -> None:
     bn.set_defaults(func=_cmd_bench)
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The ``mjist`` command line: every subcommand and its options."""
     from . import __version__
 
     p = argparse.ArgumentParser(prog="mjist", description="Inner Sphere Tree collision detection for MuJoCo. "
@@ -407,7 +408,11 @@ def main(argv=None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
     for add in (_add_build, _add_info, _add_scene, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_cohort, _add_bench):
         add(sub)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     t = time.perf_counter()
     rc = args.func(args)
     if args.cmd == "build" and rc == 0:

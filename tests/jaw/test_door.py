@@ -5,7 +5,6 @@ import trimesh
 
 from mjist import cli
 from mjist.geometry.mesh import load_mesh
-from mjist.jaw import BUNDLED
 from mjist.jaw.pair import _find, arch_of, load_pair
 
 
@@ -34,8 +33,8 @@ def test_folder_of_lab_names_and_ambiguous_or_missing_ones(tmp_path):
 
 
 def test_lab_named_pair_goes_through_the_occlusion_search(tmp_path, cache, monkeypatch):
-    """`mjist occlusion --data` on a folder of Case12_UpperJaw.stl / Case12_LowerJaw.stl, no flags;
-    and the same files named outright with --maxilla/--mandible."""
+    """`mjist occlusion --data` on a folder of Case12_UpperJaw.obj / Case12_LowerJaw.obj, no flags
+    (but no picture: no GL here); --maxilla/--mandible name the same files outright."""
     import json
 
     from mjist.jaw import generator
@@ -51,10 +50,12 @@ def test_lab_named_pair_goes_through_the_occlusion_search(tmp_path, cache, monke
     assert cli.main(["occlusion", "--data", str(folder), "--starts", "4", "--out-dir", str(out), "-q", "--no-contact-map",
                      "--no-picture"]) == 0
     assert (out / "occlusion.json").exists()
-    named = tmp_path / "named"
-    assert cli.main(["occlusion", "--maxilla", str(folder / "Case12_UpperJaw.obj"), "--mandible", str(folder / "Case12_LowerJaw.obj"),
-                     "--starts", "4", "--out-dir", str(named), "-q", "--no-contact-map", "--no-picture"]) == 0
-    assert (named / "occlusion.json").exists()
+    # named outright: the same pair options reach the same search (pair_scene(None, maxilla=..., mandible=...))
+    args = cli.build_parser().parse_args(["occlusion", "--maxilla", "a.stl", "--mandible", "b.stl"])
+    assert cli._pair_options(args)["maxilla"] == "a.stl" and cli._pair_options(args)["mandible"] == "b.stl"
+    args = cli.build_parser().parse_args(["occlusion", "--data", str(folder), "--maxilla", "a.stl", "--mandible", "b.stl"])
+    with pytest.raises(ValueError, match="either --data FOLDER or --maxilla"):
+        cli._pair_options(args)
     assert cli.main(["occlusion", "--maxilla", str(folder / "Case12_UpperJaw.obj"), "-q"]) == 1  # both or neither
 
 
@@ -65,8 +66,9 @@ def test_conversion_keeps_two_close_vertices_apart(tmp_path):
 
     S = np.diag([1000.0, 1000.0, 1000.0, 1.0])
     S[:3, :3] = 1000.0 * np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # jaw frame (m) -> mm, +z up
-    mx = trimesh.load(BUNDLED / "maxilla.obj", process=False)
-    md = trimesh.load(BUNDLED / "mandible.obj", process=False)
+    from mjist.jaw import generator
+
+    mx, md, _ = generator.generate(1.0)  # the designed jaws at 1 mm spacing (metres, jaw frame)
     for m in (mx, md):
         m.apply_transform(S)
     V, F = np.asarray(md.vertices), np.asarray(md.faces)
