@@ -1,6 +1,6 @@
 """Real occlusions: does the default occlusion search find where real teeth meet?
 
-    python scripts/bench_real_occlusion.py [--seeds 5] [--variants stored,teeth,open,bundled] [--out out/bench_real_occlusion]
+    python scripts/bench_real_occlusion.py [--seeds 5] [--variants stored,teeth,open,free,bundled] [--out out/bench_real_occlusion]
 
 The shared CBCT pair (``../shared/data/jaw``, stored in occlusion) three ways, as users bring it:
 
@@ -8,7 +8,10 @@ The shared CBCT pair (``../shared/data/jaw``, stored in occlusion) three ways, a
 * ``teeth``: converted to millimetres with +z up and cropped 9 mm either side of the occlusal
   level (no condyles, rami or fossae; exact half-space cuts with manifold3d);
 * ``open``: the stored mandible turned 8° open about its detected hinge and moved 1 mm forward
-  before the search (the search must not need the stored pose to be the answer);
+  before the search (the search must not need the stored pose to be the answer; the condyles'
+  seat is then sampled, ``arch.SEAT_UNCERTAINTY``);
+* ``free``: as stored, but searched as if given open (the condyles' seat sampled as for
+  ``open``): where the teeth alone put the occlusion;
 
 plus the bundled pair (its designed occlusion). Every search runs with default settings
 (``occlusion.search(data=FOLDER, seed=s)``), one per seed. The reference is the stored
@@ -35,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 SHARED = ROOT.parent / "shared" / "data" / "jaw"
 TARGET_MM, TARGET_DEG = 0.3, 0.5
 OPEN_DEG, OPEN_FORWARD = 8.0, 1e-3
+SEAT = 2e-3  # the condyles' seat range of a pair given open (mjist.jaw.arch.SEAT_UNCERTAINTY)
 
 
 def make_variants(out: Path) -> dict:
@@ -53,7 +57,7 @@ def make_variants(out: Path) -> dict:
     y0 = float(info["arches"]["mandible"].origin[1])
     S = np.eye(4)
     S[:3, :3] = 1000.0 * TO_FILE
-    out_dirs = {"stored": (SHARED, np.eye(4))}
+    out_dirs = {"stored": (SHARED, np.eye(4)), "free": (SHARED, np.eye(4), {"seat": SEAT})}
     teeth = out / "teeth"
     os.makedirs(teeth, exist_ok=True)
     for name, m in (("maxilla", _crop(mx, y0 + 9e-3, y0 - 9e-3, -1.0)), ("mandible", _crop(md_occ, y0 + 9e-3, y0 - 9e-3, -1.0))):
@@ -90,13 +94,13 @@ def true_reference(pair, D):
     return pair.body(W @ D @ np.linalg.inv(W) @ pair.reference)
 
 
-def run_one(folder, D, seed: int, out: Path) -> dict:
+def run_one(folder, D, seed: int, out: Path, **kw) -> dict:
     from mjist.jaw import occlusion
 
     if isinstance(D, Exception):
         raise D
     t = time.perf_counter()
-    res = occlusion.search(data=None if folder is None else folder, seed=seed, progress=False, out_dir=out)
+    res = occlusion.search(data=None if folder is None else folder, seed=seed, progress=False, out_dir=out, **kw)
     wall = time.perf_counter() - t
     try:
         jp = res["_pair"]
@@ -119,7 +123,7 @@ def run_one(folder, D, seed: int, out: Path) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--variants", default="stored,teeth,open,bundled")
+    ap.add_argument("--variants", default="stored,teeth,open,free,bundled")
     ap.add_argument("--out", default=str(ROOT / "out" / "bench_real_occlusion"))
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -137,11 +141,11 @@ def main(argv=None) -> int:
     for name in wanted:
         if name not in variants:
             continue
-        folder, D = variants[name]
+        folder, D, *kw = variants[name]
         rows[name] = []
         for seed in range(a.seeds):
             try:
-                r = run_one(folder, D, seed, out / "runs" / f"{name}_{seed}")
+                r = run_one(folder, D, seed, out / "runs" / f"{name}_{seed}", **(kw[0] if kw else {}))
             except Exception as exc:  # a refused pair is a finding, not the end of the benchmark
                 print(f"{name:8s} seed {seed}: FAILED {type(exc).__name__}: {exc}", flush=True)
                 rows[name].append({"seed": seed, "failed": f"{type(exc).__name__}: {exc}"})

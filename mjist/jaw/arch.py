@@ -39,6 +39,10 @@ BALKWILL_DEG = 26.0  # angle between the Bonwill triangle and the occlusal plane
 # Bonwill's 100 mm, Balkwill's angle by about 5°; a fit to the condyles themselves is within a millimetre
 BONWILL_UNCERTAINTY = 0.010
 CONDYLE_UNCERTAINTY = 0.001
+# how far forward or back of their given place the condyles may sit in occlusion when a pair is
+# given open (its pose says where they are, not where they seat); the search samples the seat over
+# this. A pair given in occlusion has them seated: 0
+SEAT_UNCERTAINTY = 0.002
 RAMUS_HEIGHT = 0.015
 # a dental arch runs 35-55 mm front to back; the first contact of a pair given open (condyles in
 # their fossae) spans under 20 mm: points this shallow are not the teeth meeting

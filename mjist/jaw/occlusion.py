@@ -43,12 +43,24 @@ CHUNK_S = 0.1
 AMBIGUOUS_FLOOR_MM = 0.002  # the margin below which two basins are never told apart (point sampling noise)
 
 
+def _rounds(starts: int) -> list[tuple[int, float]]:
+    """The search's rounds: (starts, share of ``translation``). Half the starts sample the
+    condyles' seat over the whole range, then a quarter within a quarter of it around the best
+    pose so far, then the rest within a sixteenth: the seat is found to about a tenth of a
+    millimetre with the starts one wide round would spend."""
+    a = max(1, starts // 2)
+    b = max(0, min(starts - a, starts // 4))
+    return [(m, s) for m, s in ((a, 1.0), (b, 0.25), (starts - a - b, 0.0625)) if m > 0]
+
+
 def sample_starts(pair: ScenePair, n: int, *, translation: float = 2e-3, rotation_deg: float = 3.0, opening_deg: float = 2.0,
-                  seed: int = 0) -> np.ndarray:
+                  seed=0, centre: tuple | None = None) -> np.ndarray:
     """Starting mandible poses ``(n, 7)`` (pos, quat w-first): open by up to ``opening_deg`` about
     the hinge, shifted by up to ``translation`` laterally and antero-posteriorly (half that
-    vertically), turned by up to ``rotation_deg`` about a random axis through the hinge."""
-    p0, q0, hinge = pair.reference_pos, pair.reference_quat, pair.hinge
+    vertically), turned by up to ``rotation_deg`` about a random axis through the hinge; around
+    the reference occlusion, or around ``centre`` (mandible body ``(pos, quat)``)."""
+    p0, q0 = (pair.reference_pos, pair.reference_quat) if centre is None else (np.asarray(centre[0]), np.asarray(centre[1]))
+    hinge = condyle_seats(pair, np.r_[p0, q0])[0]
     rng = np.random.default_rng(seed)
     R0 = Rotation.from_quat(q0[[1, 2, 3, 0]])
     out = np.empty((n, 7))
@@ -64,6 +76,20 @@ def sample_starts(pair: ScenePair, n: int, *, translation: float = 2e-3, rotatio
         x, y, z, w = (R * R0).as_quat()
         out[i, 3:] = (w, x, y, z)
     return out
+
+
+def condyle_seats(pair: ScenePair, X) -> np.ndarray:
+    """Where the condylar axis' centre stands (world, ``(n, 3)``) for each mandible body pose ``X[i]``.
+
+    The search's TMJ holds the condyles at a seat (the scene's mocap body ``condyles``). A pair
+    given in occlusion has them seated; a pair given open says where they were, not where they
+    seat, so the search samples the seat forward and back around this point of its best pose.
+    """
+    R0 = Rotation.from_quat(pair.reference_quat[[1, 2, 3, 0]])
+    local = R0.inv().apply(pair.hinge - pair.reference_pos)  # the hinge in the mandible body's frame
+    X = np.atleast_2d(np.asarray(X, float))
+    R = Rotation.from_quat(X[:, [4, 5, 6, 3]])
+    return X[:, :3] + R.apply(local)
 
 
 def _separate(pair: ScenePair, q: Query, start: np.ndarray, step: float = 2e-4) -> np.ndarray:
@@ -141,7 +167,8 @@ def _polish(pair: ScenePair, bvh, P, reach_deg: float = POLISH_REACH_DEG):
 
 def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3, rotation_deg: float = 3.0,
            opening_deg: float = 2.0, seconds: float = 2.0, seed: int = 0, threads: int | None = None,
-           top: int = 5, polish: int = 1, progress: bool = True, cache_dir=None, out_dir=None, pair: dict | None = None) -> dict:
+           top: int = 5, polish: int = 1, seat: float | None = None, progress: bool = True, cache_dir=None, out_dir=None,
+           pair: dict | None = None) -> dict:
     """Sample, close and rank mandible poses; return ``{"candidates": [...], ...}`` (best first).
 
     Parameters
@@ -160,6 +187,11 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
     top, polish : int
         Candidates (basins) returned; how many of the best are brought to touch with every
         occlusal vertex and checked with coal (``_polish``).
+    seat : float, optional
+        How far forward or back of the reference the condyles may seat (m). Default: the scene's
+        ``pair.json`` (``arch.SEAT_UNCERTAINTY`` for a pair given open), else 0: the condyles stay
+        where the reference has them. Above 0 the search runs in rounds (``_rounds``), each
+        sampling the seat more narrowly around the best pose so far.
 
     Returns
     -------
@@ -172,6 +204,10 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
     if data is not None or (pair or {}).get("maxilla"):
         scene = pair_scene(data, out_dir or "out/occlusion", "occlusion", progress=progress, **(pair or {}))
     scene = Path(scene or SCENE)
+    meta = scene.parent / "pair.json"  # a scene made from a user's pair: its hinge, how sure it is
+    meta = json.loads(meta.read_text()) if meta.exists() else {}
+    if seat is None:
+        seat = float(meta.get("seat_uncertainty_mm") or 0.0) * 1e-3
     t0 = time.perf_counter()
     model, handle = load_model(scene, progress=progress, cache_dir=cache_dir)
     try:
@@ -180,23 +216,39 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         jp.sample = _sample(jp, jp.reference)
         setup_s = time.perf_counter() - t0
 
-        X = sample_starts(jp, starts, translation=translation, rotation_deg=rotation_deg, opening_deg=opening_deg, seed=seed)
-        X = np.array([_separate(jp, q, x) for x in X])
         nthread = int(threads or os.cpu_count() or 1)
-        t1 = time.perf_counter()
-        final, settle = _close(jp, X, seconds, nthread, progress)
-        sim_s = time.perf_counter() - t1
-
+        X, final, settle, judged = np.empty((0, 7)), [], [], []
+        sim_s = rank_s = 0.0
+        centre, picked = None, jp.reference
+        for r, (m, scale) in enumerate(_rounds(starts) if seat > 0 else [(starts, 1.0)]):
+            # each round samples the condyles' seat around the best pose so far, more narrowly
+            Xr = sample_starts(jp, m, translation=translation * scale, rotation_deg=rotation_deg, opening_deg=opening_deg,
+                               seed=(seed, r) if r else seed, centre=centre)
+            # forward or back only: the discs hold the condyles' height, the fossae their side
+            seats = np.tile(jp.hinge, (m, 1))
+            if centre is not None:
+                seats[:, 1] = condyle_seats(jp, np.r_[centre[0], centre[1]])[0, 1]
+            seats[:, 1] += np.random.default_rng((seed, r, 1)).uniform(-1.0, 1.0, m) * seat * scale
+            Xr = np.array([_separate(jp, q, x) for x in Xr])
+            t1 = time.perf_counter()
+            fr, sr = _close(jp, Xr, seconds, nthread, progress, seats)
+            sim_s += time.perf_counter() - t1
+            t2 = time.perf_counter()
+            X, final, settle = np.vstack([X, Xr]), final + fr, settle + sr
+            judged += _judge_all(jp, fr)
+            # the occlusal surfaces are those that meet: re-pick them where the best start closed
+            # (a pair given far from its occlusion has its reference where only the front teeth meet)
+            best = max((i for i in range(len(judged)) if not settle[i]["unstable"]), key=lambda i: judged[i].score, default=0)
+            if _shift_mm(judged[best].pose, picked, jp.sample.mandible_points) > BASIN_MM:
+                picked = judged[best].pose
+                jp.sample = _sample(jp, picked)
+                judged = _judge_all(jp, final)
+                best = max((i for i in range(len(judged)) if not settle[i]["unstable"]), key=lambda i: judged[i].score, default=0)
+            centre = jp.body(judged[best].pose)
+            rank_s += time.perf_counter() - t2
         t2 = time.perf_counter()
-        judged = _judge_all(jp, final)
-        # the occlusal surfaces are those that meet: re-pick them where the best start closed
-        # (a pair given far from its occlusion has its reference where only the front teeth meet)
-        best = max((i for i in range(len(judged)) if not settle[i]["unstable"]), key=lambda i: judged[i].score, default=0)
-        if _shift_mm(judged[best].pose, jp.reference, jp.sample.mandible_points) > BASIN_MM:
-            jp.sample = _sample(jp, judged[best].pose)
-            judged = _judge_all(jp, final)
         basins = _basins(jp, judged, settle)
-        rank_s = time.perf_counter() - t2
+        rank_s += time.perf_counter() - t2
         bvh = (jawmod.coal_bvh(*jp.maxilla), jawmod.coal_bvh(*jp.mandible))
         cands = []
         for rank, b in enumerate(basins[:top]):
@@ -228,10 +280,9 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
             "landscape": [_landscape_row(jp, X[i], final[i], judged[i], settle[i]) for i in range(len(X))],
         }
         res["rank_correlation"] = rank_correlation(res["landscape"])
-        meta = scene.parent / "pair.json"
-        if meta.exists():  # a scene made from a user's pair: where its hinge came from, how sure it is
-            j = json.loads(meta.read_text())
-            res["hinge_source"], res["hinge_uncertainty_mm"] = j.get("hinge_source"), j.get("hinge_uncertainty_mm")
+        if meta:
+            res["hinge_source"], res["hinge_uncertainty_mm"] = meta.get("hinge_source"), meta.get("hinge_uncertainty_mm")
+        res["seat_uncertainty_mm"] = seat * 1e3
         res["_model"], res["_handle"], res["_pair"] = model, handle, jp
         return res
     except Exception:
@@ -314,9 +365,10 @@ def _confidence(cands: list[Candidate]) -> dict:
             "basin_starts": [a.starts, b.starts], "runner_up_shift_mm": None}
 
 
-def _close(jp: ScenePair, X, seconds: float, nthread: int, progress: bool) -> tuple[list[dict], list[dict]]:
+def _close(jp: ScenePair, X, seconds: float, nthread: int, progress: bool, seats=None) -> tuple[list[dict], list[dict]]:
     """Each start ``X[i]`` (mandible qpos) closed with ``mujoco.rollout`` until it settles or
-    ``seconds`` pass: its final body pose, and how settled it is.
+    ``seconds`` pass: its final body pose, and how settled it is. ``seats[i]`` (world) is where
+    the start's TMJ holds the condyles, when the scene has the mocap body ``condyles``.
 
     A start has settled when its tooth points move slower than ``SETTLED`` (mm/s) both over its last
     step and on average over the last ``CHUNK_S``: at rest, not sliding and not chattering (a jaw
@@ -338,6 +390,12 @@ def _close(jp: ScenePair, X, seconds: float, nthread: int, progress: bool) -> tu
         d.qpos[:7] = X[i]
         mujoco.mj_getState(model, d, state[i], spec)
     datas = [mujoco.MjData(model) for _ in range(nthread)]
+    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "condyles")
+    control, mocap = None, int(mujoco.mjtState.mjSTATE_MOCAP_POS)
+    if seats is not None and body >= 0 and model.body_mocapid[body] >= 0:
+        control = np.tile(model.body_pos[model.body_mocapid.argsort()[-model.nmocap:]].ravel(), (n, 1, 1))
+        k = model.body_mocapid[body]  # the other mocap bodies (a user's scene) stay where they are
+        control[:, 0, 3 * k:3 * k + 3] = seats
     pts = jp.sample.mandible_points
     settle = [{"settled": False, "unstable": False, "drift_mm_s": float("inf"), "speed_mm_s": float("inf"),
                "last_step_mm": float("inf"), "seconds": 0.0} for _ in range(n)]
@@ -357,7 +415,10 @@ def _close(jp: ScenePair, X, seconds: float, nthread: int, progress: bool) -> tu
         nstep = max(2, int(round(chunk / dt)))
         back = min(nstep - 1, int(round(CHUNK_S / dt)))  # rollout returns the states after each step
         t_end = state[active, 0] + nstep * dt
-        st, _ = rollout.rollout(model, datas, state[active], nstep=nstep)
+        if control is None:
+            st, _ = rollout.rollout(model, datas, state[active], nstep=nstep)
+        else:
+            st, _ = rollout.rollout(model, datas, state[active], control[active], control_spec=mocap, nstep=nstep)
         state[active] = st[:, -1, :]
         elapsed += nstep * dt
         still = []

@@ -234,6 +234,7 @@ def _closed_about_condyles(mx, md, pose, notes: list, info: dict) -> np.ndarray:
     notes.append(f"the jaws first meet outside the teeth moving the mandible up: closed {-np.degrees(turn):.2f}° about "
                  "its condyles to where the teeth first touch (coal)")
     info["source"] = "coal first touch closing about the condyles"
+    info["seat_uncertainty"] = arch.SEAT_UNCERTAINTY
     return hinge_pose(turn, h)
 
 
@@ -263,7 +264,9 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
         ``mandible_pose`` (4x4, the occlusion: from ``occlusion.json`` when the folder has one,
         else where coal says the jaws first touch moving the mandible along up), ``hinge``
         (mandible mesh coordinates), ``hinge_source`` and ``hinge_uncertainty`` (m, how far the
-        true condylar axis may be: about 10 mm for Bonwill's estimate), ``orientation``, ``arches`` (each
+        true condylar axis may be: about 10 mm for Bonwill's estimate), ``seat_uncertainty`` (m, how far
+        forward or back the condyles may seat in occlusion: ``arch.SEAT_UNCERTAINTY`` for a pair given
+        open, else 0), ``orientation``, ``arches`` (each
         arch's frame, ``arch.ArchFrame``), ``teeth_only`` and ``inertial`` (anatomical mass
         properties for a teeth-only mandible), ``paths``, ``notes`` (what was detected or repaired).
 
@@ -285,14 +288,14 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
     mx, md = _in_jaw_frame(raw["maxilla"], o, "maxilla"), _in_jaw_frame(raw["mandible"], o, "mandible")
     P = np.eye(4)
     P[UP, 3] = touch
-    info = {"mandible_pose": P, "source": "coal first touch"}
+    info = {"mandible_pose": P, "source": "coal first touch", "seat_uncertainty": 0.0}
     meta = paths["maxilla"].parent / "occlusion.json"
     if maxilla is None:  # a pair folder may carry its designed occlusion
         if meta.exists():
             j = json.loads(meta.read_text())
             S = np.eye(4)
             S[:3, :3] = o.scales[0] * o.R
-            info = {"mandible_pose": S @ np.array(j["mandible_pose"]) @ np.linalg.inv(S), "source": str(meta),
+            info = {"mandible_pose": S @ np.array(j["mandible_pose"]) @ np.linalg.inv(S), "source": str(meta), "seat_uncertainty": 0.0,
                     "hinge": o.apply(np.array(j["hinge"])[None], "mandible")[0]}
     pose = info["mandible_pose"]
     up_j = (0.0, 1.0, 0.0)

@@ -249,12 +249,16 @@ def occlusion_search_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 
     soft ball joint at the hinge; off, the mandible is free and only the teeth and the closing
     force decide its pose. ``inertial`` as for ``jaw_closure_xml``.
     """
+    seat = _v(jaw_to_world(np.eye(3), np.asarray(mandible_pos, float) + np.asarray(hinge, float))[1])
     tmj_xml = (f"""  <equality>
     <!-- the temporomandibular joints seat the condyles in their fossae: a soft ball joint at the
-         condylar axis' centre (it yields, so the teeth, not the joint, decide the final pose) -->
-    <connect name="tmj" body1="mandible" body2="skull" anchor="{_v(jaw_to_world(np.eye(3), np.asarray(mandible_pos, float) + np.asarray(hinge, float))[1])}" solref="{tmj_timeconst:g} 1"/>
+         condylar axis' centre (it yields, so the teeth, not the joint, decide the final pose).
+         Its seat is the mocap body "condyles": the search moves it with each start, because
+         where the condyles sit in occlusion is known only as well as the pair's given pose -->
+    <connect name="tmj" body1="mandible" body2="condyles" anchor="{seat}" solref="{tmj_timeconst:g} 1"/>
   </equality>
 """ if tmj else "")
+    seat_body = f'\n    <body name="condyles" mocap="true" pos="{seat}"/>' if tmj else ""
     Rc, tc = mandible_pose(hinge, mandible_pos, 0.0)
     qc = _quat(Rc)
     md = f'\n  <compiler meshdir="{meshdir}"/>' if meshdir else ""
@@ -275,7 +279,7 @@ def occlusion_search_xml(maxilla: str, mandible: str, hinge, mandible_pos=(0.0, 
     <body name="skull" euler="90 0 0">
       <geom name="maxilla" type="mesh" mesh="maxilla" rgba="0.93 0.87 0.76 1"/>
       <site name="hinge" pos="{_v(np.asarray(mandible_pos, float) + np.asarray(hinge, float))}" size="0.002"/>
-    </body>
+    </body>{seat_body}
     <body name="mandible">
       <!-- a free joint's damping is one number for translation and rotation; separate joints
            damp each with its own time constant (about 0.1 s for this jaw's mass and inertia).
@@ -375,7 +379,8 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
     path.write_text(xml)
     summary = {"scene": str(path), "kind": kind, "meshes": files, "hinge": np.asarray(info["hinge"]).tolist(),
                "hinge_source": info["hinge_source"], "hinge_uncertainty_mm": info["hinge_uncertainty"] * 1e3,
-               "occlusion_source": info["source"], "teeth_only": info["teeth_only"],
+               "occlusion_source": info["source"], "seat_uncertainty_mm": info["seat_uncertainty"] * 1e3,
+               "teeth_only": info["teeth_only"],
                "mandible_pose": np.asarray(info["mandible_pose"]).tolist(),
                "orientation": info["orientation"].as_dict(), "arches": {k: f.as_dict() for k, f in info["arches"].items()},
                "notes": info["notes"]}

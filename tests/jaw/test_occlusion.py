@@ -70,6 +70,38 @@ def test_real_pair_search_finds_its_stored_occlusion(cache, tmp_path):
     assert best["settled"] and abs(best["coal_distance_mm"]) < 1e-3  # at rest, at zero penetration
 
 
+def test_the_seat_holds_the_condyles_where_the_search_puts_it(cache):
+    """Two starts at the designed occlusion, one seated 1 mm further back: the TMJ holds each
+    start's condyles at its own seat (the soft joint yields to the teeth, here by about 0.4 mm;
+    without the seat both would end in the same place)."""
+    from mjist.jaw.scenepair import resolve
+    from mjist.mujoco.attach import load_model
+
+    model, handle = load_model(occlusion.SCENE, progress=False, cache_dir=cache)
+    try:
+        jp = resolve(model, handle)
+        jp.sample = occlusion._sample(jp, jp.reference)
+        X = np.tile(np.r_[jp.reference_pos, jp.reference_quat], (2, 1))
+        seats = np.tile(jp.hinge, (2, 1))
+        seats[1, 1] += 1e-3  # world +y is posterior
+        final, _ = occlusion._close(jp, X, 0.3, 2, False, seats)
+    finally:
+        handle.detach()
+    at = occlusion.condyle_seats(jp, np.array([np.r_[f["pos"], f["quat"]] for f in final]))
+    back = (at[1] - at[0]) * 1e3
+    assert 0.4 < back[1] < 1.1 and abs(back[0]) < 0.3, back
+
+
+def test_a_free_seat_still_finds_the_designed_occlusion(cache):
+    """The search as for a pair given open (the condyles' seat sampled 2 mm forward and back, in
+    rounds, default 64 starts): the teeth, not the given condyle position, bring it to the designed
+    occlusion."""
+    res = _run(cache, seed=1, threads=2, seat=2e-3)
+    best = res["candidates"][0]
+    assert res["seat_uncertainty_mm"] == 2.0 and len(res["landscape"]) == 64
+    assert best["error"]["max_mm"] <= 0.25 and best["error"]["rotation_deg"] <= 1.0, best["error"]
+
+
 def test_settling_is_reported_and_a_short_budget_says_so(cache):
     """Every start reports whether it settled, its drift and last step; with too little closing
     time nothing settles, and the candidates say so rather than passing for rest positions."""

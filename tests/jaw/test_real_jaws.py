@@ -76,7 +76,8 @@ def test_without_the_condylar_stop_the_teeth_drive_it_back(teeth_only, cache, tm
 def test_pair_given_open_is_closed_about_its_condyles(tmp_path):
     """The stored mandible turned 8° open about its condyles and moved 1 mm forward: moving it up
     first meets the condyles in their fossae (not an arch), so the pair is closed about the
-    condyles to where the teeth first touch, and the scene carries that turned pose."""
+    condyles to where the teeth first touch, and the scene carries that turned pose and leaves the
+    condyles' seat to the search."""
     import trimesh
 
     from mjist.jaw.exact import coal_bvh, coal_distance
@@ -105,3 +106,5 @@ def test_pair_given_open_is_closed_about_its_condyles(tmp_path):
     scene = pair_scene(tmp_path, tmp_path / "scene", "occlusion", progress=False)
     model = mujoco.MjModel.from_xml_path(str(scene))  # the turned occlusion is baked into the exported mandible
     assert (tmp_path / "scene" / "mandible.jaw.obj").exists() and model.nmesh == 2
+    # given open, the pose says where the condyles were, not where they seat: the search samples it
+    assert info["seat_uncertainty"] > 0 and json.loads((tmp_path / "scene" / "pair.json").read_text())["seat_uncertainty_mm"] > 0
