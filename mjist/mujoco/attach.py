@@ -152,21 +152,32 @@ def _load_trees(model, cfg: Config, handle: Handle, used: list[int], trees, cach
 
 
 def _tree_tables(model, handle: Handle, slot_of: dict) -> tuple[dict, set]:
-    """The packed trees and the per-geom index the cfuncs read; the traversal stack they need."""
-    from ..query.traverse import pack, stack_size
+    """The packed trees, their leaves' exit directions and the per-geom index the cfuncs read;
+    the traversal stack they need. The meshes packed for exact distances (``by_mesh``) are kept
+    for the surface narrow phase."""
+    from ..geometry.surface import build_surface
+    from ..query.traverse import exit_directions, pack, stack_size
 
     nman = len(slot_of)
     gslot = np.full(model.ngeom, -1, np.int64)
-    packed = []
+    packed, exits, by_mesh = [], [], {}
     tree_tab = np.zeros(3 * nman, np.int64)
+    t0 = time.perf_counter()
     for g, k in slot_of.items():
         gslot[g] = k
         N = pack(handle.trees[geom_name(model, g)])
+        mid = int(model.geom_dataid[g])
+        if mid not in by_mesh:
+            by_mesh[mid] = build_surface(*mesh_of(model, g))
+        X = exit_directions(N, by_mesh[mid])
         packed.append(N)
+        exits.append(X)
         tree_tab[3 * k] = N.ctypes.data
         tree_tab[3 * k + 1] = N.shape[0]
+        tree_tab[3 * k + 2] = X.ctypes.data
+    handle.exit_seconds = time.perf_counter() - t0
     ns = max([stack_size(a, b) for a in packed for b in packed] + [stack_size(a) for a in packed] + [2])
-    arrays = {"gslot": gslot, "trees": tree_tab, "packed": packed, "stack": ns,
+    arrays = {"gslot": gslot, "trees": tree_tab, "packed": packed, "exits": exits, "by_mesh": by_mesh, "stack": ns,
               "cap": np.zeros(nman * nman, np.int64), "offset": np.zeros(nman * nman, np.float64),
               "eps": np.zeros(nman * nman, np.float64)}
     return arrays, set()
@@ -177,18 +188,13 @@ def _surface_tables(model, cfg: Config, handle: Handle, slot_of: dict, arrays: d
     (``geometry.surface``, shared by geoms of one mesh) and the per-geom table the cfuncs read."""
     nman = len(slot_of)
     tab = np.zeros(5 * max(nman, 1), np.int64)
+    by_mesh = arrays.pop("by_mesh")  # built for the exit directions; kept only when measured on
     arrays.update(surf=tab, surfaces=[])
     if cfg.narrowphase != "surface":
         return
-    from ..geometry.surface import build_surface
-
     t0 = time.perf_counter()
-    by_mesh = {}
     for g, k in slot_of.items():
-        mid = int(model.geom_dataid[g])
-        if mid not in by_mesh:
-            by_mesh[mid] = build_surface(*mesh_of(model, g))
-        s = by_mesh[mid]
+        s = by_mesh[int(model.geom_dataid[g])]
         handle.surfaces[geom_name(model, g)] = s
         tab[5 * k:5 * k + 5] = [s.floats.ctypes.data, s.ints.ctypes.data, *s.sizes]
     arrays["surfaces"] = list(by_mesh.values())  # kept alive with the entry

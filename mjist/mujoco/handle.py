@@ -44,6 +44,7 @@ class Handle:
     cache_hits: int = 0
     surfaces: dict[str, object] = field(default_factory=dict)  # mjist_narrowphase surface: geometry.surface.Surface by geom
     surface_seconds: float = 0.0  # building them
+    exit_seconds: float = 0.0  # the leaves' exit directions (deep contacts' normals), surfaces included
     _entry: object = None
 
     @property

@@ -106,7 +106,9 @@ from .layout import (
     F_LOK,
     F_LXF,
     F_MARGIN,
+    F_NPN,
     F_OK,
+    F_PN,
     F_REF,
     F_TIME,
     FW,
@@ -217,6 +219,19 @@ def pair_trees(E, g1, g2):
 
 
 @njit(cache=True, inline="always")
+def pair_exits(E, g1, g2):
+    """The leaves' exit directions ``(Xa, Xb)`` of managed geoms ``g1``, ``g2`` (``traverse.exit_directions``)."""
+    nman = E[E_NMAN]
+    gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
+    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
+    ka = gslot[g1]
+    kb = gslot[g2]
+    Xa = carray(abi.f64_ptr(trees[3 * ka + 2]), (trees[3 * ka + 1], 4))
+    Xb = carray(abi.f64_ptr(trees[3 * kb + 2]), (trees[3 * kb + 1], 4))
+    return Xa, Xb
+
+
+@njit(cache=True, inline="always")
 def _pair_scratch(E, scratch, cap):
     """Views of a pair call's scratch (``layout.pair_floats``, ``layout.pair_ints``): float64
     poses, stack values, candidate values, dmin, geometry rows, a stateless slot, the blend
@@ -299,6 +314,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
         mb = tv.motion_bound(fst[F_REF:F_REF + 12], xf, Nb[0, 0:3], Nb[0, 3])
         if fst[F_D] - mb >= thr:
             count[C_SKIPPED] += 1
+            fst[F_NPN] = 0.0
             return 0
     n, code, use_front = _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, pair, count)
     if code != tv.OK:
@@ -313,6 +329,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
             prev[i, c] = cand[i, c]
     ist[I_NPREV] = keep
     if n == 0:
+        fst[F_NPN] = 0.0
         if skip and not use_front:
             _refresh_skip(Na, Nb, xf, ist, fst, st, sv, pair)
         return 0
@@ -328,8 +345,9 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
             return 0
     else:
         k = tv.select_spread(Na, Nb, xf, cand, cval, n, cap, chosen, geom, dmin)
-        _write_contacts(E, Na, Nb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con, cap,
-                        count)
+        Xa, Xb = pair_exits(E, g1, g2)
+        _write_contacts(E, Na, Nb, Xa, Xb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con,
+                        cap, count, fst, step)
     ist[I_PAIR] = cand[chosen[0], 2]
     ist[I_PAIR + 1] = cand[chosen[0], 3]
     count[C_CONTACT_CALLS] += 1
@@ -395,7 +413,8 @@ def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
     if not best < margin + offset:
         return 0
     tv.leaf_geometry(Na, Nb, xf, pair[0], pair[1], g)
-    tv.contact_normal(Na, Nb, xf, pair[0], pair[1], g, E[E_NUP])
+    Xa, Xb = pair_exits(E, g1, g2)
+    tv.surface_normal(Na, Nb, Xa, Xb, xf, pair[0], pair[1], g)
     _write_row(row, best - offset, Pa, g)
     return 1
 
@@ -438,6 +457,7 @@ def _slot_state(E, d, p, margin, na, nb, is_local, fs_local, count):
         fst[F_OK] = 0.0
         fst[F_FOK] = 0.0
         fst[F_LOK] = 0.0
+        fst[F_NPN] = 0.0
         fst[F_MARGIN] = margin
     fst[F_TIME] = now
     if ist[I_PAIR] < 0 or ist[I_PAIR] >= na or ist[I_PAIR + 1] < 0 or ist[I_PAIR + 1] >= nb:
@@ -533,17 +553,64 @@ def _refresh_skip(Na, Nb, xf, ist, fst, st, sv, pair):
 
 
 @njit(cache=True)
-def _write_contacts(E, Na, Nb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con, cap, count):
-    """The ``k`` chosen candidates as MuJoCo contacts (world frame) into ``con``."""
+def _write_contacts(E, Na, Nb, Xa, Xb, xf, Pa, cand, cval, chosen, k, geom, thr, offset, st, sv, bacc, pair, con, cap,
+                    count, fst, step):
+    """The ``k`` chosen candidates as MuJoCo contacts (world frame) into ``con``.
+
+    Their normals turn to the meshes' own as they get deep (``traverse.surface_normal``); a deep
+    contact whose normal turns more than 60° from last step's contact nearest to it (within its depth
+    and size, the pair having moved less than that) keeps last step's: an object pressed past
+    the middle of a wall is pushed back out the side it came from (the side of approach).
+    Penalty rows keep the ancestors' normals, blended over the group (smooth forces).
+    """
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    mem = fst[F_PN:F_PN + 6 * KP].reshape((KP, 6))
+    nmem = int(fst[F_NPN])
     for j in range(k):
         i = chosen[j]
         g = geom[i]
-        tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[E_NUP])  # robust to deep, thin overlaps
+        if E[E_NUP] > 0:
+            tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[E_NUP])
+        else:
+            s = tv.surface_normal(Na, Nb, Xa, Xb, xf, cand[i, 2], cand[i, 3], g)
+            reach = 2.0 * (abs(cval[i]) + Na[cand[i, 2], 3] + Nb[cand[i, 3], 3])
+            if s > tv.DEEP and nmem > 0 and step < reach:
+                _side_of_approach(mem, nmem, g, reach)
         if E[E_NUP] > 0 and cval[i] < thr:
             count[C_VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP],
                                             bacc, pair, g)
         _write_row(out[j], cval[i] - offset, Pa, g)
+    keep = min(k, KP)
+    for j in range(keep):
+        g = geom[chosen[j]]
+        for r in range(3):
+            mem[j, r] = g[9 + r]
+            mem[j, 3 + r] = g[r]
+    fst[F_NPN] = keep
+
+
+# a deep contact's normal may turn this far from last step's (cosine) before it is taken for a
+# flip: more keeps true turns of a fast-rotating pair, less catches the flips that are not reversals
+TURN_COS = 0.5
+
+
+@njit(cache=True, inline="always")
+def _side_of_approach(mem, nmem, g, reach):
+    """Turn normal ``g[0:3]`` back to the side it came from: the normal of the remembered contact
+    nearest to point ``g[9:12]`` when that one lies within ``reach`` and is more than 60° away."""
+    best = -1
+    bd = reach * reach
+    for m in range(nmem):
+        dx = mem[m, 0] - g[9]
+        dy = mem[m, 1] - g[10]
+        dz = mem[m, 2] - g[11]
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < bd:
+            bd = d2
+            best = m
+    if best >= 0 and mem[best, 3] * g[0] + mem[best, 4] * g[1] + mem[best, 5] * g[2] < TURN_COS:
+        for r in range(3):
+            g[r] = mem[best, 3 + r]
 
 
 @njit(cache=True)

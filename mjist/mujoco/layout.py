@@ -49,7 +49,7 @@ ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS
     E_GSLOT,  # per geom: its IST index k (-1: not managed)
     E_NMAN,  # managed geoms (nman)
     E_CAP,  # per pair p = ka * nman + kb: contacts written at most (0: not managed, -1: penalty)
-    E_TREES,  # per k: (packed tree address, node count, -)
+    E_TREES,  # per k: (packed tree address, node count, traverse.exit_directions (n, 4) address)
     E_OFFSET,  # per pair: subtracted from the IST distance (metres)
     E_XPOS, E_XMAT,  # offsets in mjData of geom_xpos, geom_xmat
     E_ALLOC, E_MARK, E_FREE,  # mj_stackAllocByte, mj_markStack, mj_freeStack
@@ -90,9 +90,10 @@ NG = 256  # groups of the motion-bounded front
 # int64 words: closest leaf pair, remembered groups' count, front's count, the groups, the front
 I_PAIR, I_NPREV, I_NFRONT, I_PREV, I_FRONT, IW = _offsets(2, 1, 1, 4 * KP, 4 * NG)
 # float64 words: distance-skip reference (pose, distance, valid), slot time, front reference
-# (valid, pose, threshold reached, contact threshold), last pose (+ valid), the margin it serves
-F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, FW = _offsets(
-    12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1)
+# (valid, pose, threshold reached, contact threshold), last pose (+ valid), the margin it serves,
+# last step's contacts (count; per contact: point, normal, A's frame) for the side of approach
+F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, F_NPN, F_PN, FW = _offsets(
+    12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1, 1, 6 * KP)
 
 # ---- slot keys: an MjData address and a pair index in one int64 ---------------------------
 KEY_SHIFT = 48  # user-space addresses fit in 48 bits (x86-64, AArch64)

@@ -463,6 +463,157 @@ def contact_normal(Na, Nb, xf, a, b, out, min_climb=0):
         climbed += 1
 
 
+@njit(cache=True)
+def _climb_inside(Na, Nb, Xa, Xb, xf, a, b, out):
+    """``contact_normal``'s climb for a deep pair, through ancestors whose centres lie inside
+    their solids only (``Xa[:, 3]``; a hollow object's inner nodes have theirs in its cavity):
+    into ``out[0:3]`` the direction of the nearest pair that overlaps shallowly, or of the
+    highest such ancestors when the climb would leave both solids first (centres deep inside
+    each, so their direction keeps the larger-scale geometry). False for coincident centres."""
+    while True:
+        bx, by, bz = _to_a(xf, Nb, b)
+        dx = bx - Na[a, 0]
+        dy = by - Na[a, 1]
+        dz = bz - Na[a, 2]
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        ra = Na[a, 3]
+        rb = Nb[b, 3]
+        pa = int(Na[a, PAR]) if a != 0 else -1
+        pb = int(Nb[b, PAR]) if b != 0 else -1
+        oka = pa >= 0 and Xa[pa, 3] > 0.0
+        okb = pb >= 0 and Xb[pb, 3] > 0.0
+        if (not ra + rb - d > CROSS * min(ra, rb) or not (oka or okb)) and d > 1e-300:
+            out[0] = dx / d
+            out[1] = dy / d
+            out[2] = dz / d
+            return True
+        if oka and (ra <= rb or not okb):
+            a = pa
+        elif okb:
+            b = pb
+        else:
+            return False
+
+
+@njit(cache=True)
+def surface_normal(Na, Nb, Xa, Xb, xf, a, b, out):
+    """Unit contact normal (A→B, A's frame) of leaf pair ``(a, b)`` into ``out[0:3]``: the
+    centres' direction, turned round where the balls have crossed.
+
+    Two small balls pressed past each other's centres (an object driven into a wall by a fast
+    impact or MuJoCo's soft contacts) give a centre direction that points backwards. For a
+    deep pair the nearest shallowly overlapping ancestors answer (as ``contact_normal``), but
+    only through ancestors whose centres lie inside their solids (``_climb_inside``): in a
+    hollow object they lie in its cavity (a cup's root is in its bowl). The meshes also say
+    which side is out: ``Xa``, ``Xb``
+    ``(n, 3)`` are the leaves' exit directions (``exit_directions``: from the centre towards
+    the nearest point of the mesh, in the tree's frame, shorter where that is ambiguous), and
+    ``Xa - R Xb`` (their first three columns) points from A into B for leaves of surfaces that meet, whatever their depth
+    up to the middle of the thinner object. Only its sign is used, and only where it is
+    clear: an exit direction is arbitrary at the medial axis (a ball's centre, a leaf filling
+    a wall), the centres' direction is not. Then the normal becomes the surfaces' own where
+    their exits are trusted (``TRUSTED``): the mean of both when they agree (``FACES_COS``, two
+    faces pressed together), the trusted one against a leaf without (a round object's centre),
+    when within ``NEAR_COS`` of the centres' direction: a flat floor's normal instead of the
+    tilt of two small balls' centres. Where the two disagree by less than
+    ``CROSS_SIDE`` (past the middle of a wall the exits point the same way) the centres'
+    direction stays; the hook then keeps the side of approach (``hook._side_of_approach``).
+    With ``Xa`` empty it is the centres' direction. Returns the pair's overlap over the smaller
+    radius (the hook's "deep").
+    """
+    bx, by, bz = _to_a(xf, Nb, b)
+    dx = bx - Na[a, 0]
+    dy = by - Na[a, 1]
+    dz = bz - Na[a, 2]
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    ra = Na[a, 3]
+    rb = Nb[b, 3]
+    if d > 1e-300:
+        nx, ny, nz = dx / d, dy / d, dz / d
+    else:
+        nx, ny, nz = 0.0, 0.0, 1.0
+    s = (ra + rb - d) / min(ra, rb)
+    if Xa.shape[0] > a and Xb.shape[0] > b:
+        ex = Xa[a, 0] - (xf[0] * Xb[b, 0] + xf[1] * Xb[b, 1] + xf[2] * Xb[b, 2])
+        ey = Xa[a, 1] - (xf[3] * Xb[b, 0] + xf[4] * Xb[b, 1] + xf[5] * Xb[b, 2])
+        ez = Xa[a, 2] - (xf[6] * Xb[b, 0] + xf[7] * Xb[b, 1] + xf[8] * Xb[b, 2])
+        if s > CROSS and _climb_inside(Na, Nb, Xa, Xb, xf, a, b, out):
+            nx, ny, nz = out[0], out[1], out[2]
+        elif nx * ex + ny * ey + nz * ez < -CROSS_SIDE:
+            nx, ny, nz = -nx, -ny, -nz
+        # the surfaces' own normal where they can be trusted: both exits when they agree (two
+        # faces pressed together), the one trusted exit against a round object's centre leaf;
+        # exits that disagree (an edge or a corner on a face) leave the centres' direction
+        ux, uy, uz = Xa[a, 0], Xa[a, 1], Xa[a, 2]
+        vx = -(xf[0] * Xb[b, 0] + xf[1] * Xb[b, 1] + xf[2] * Xb[b, 2])
+        vy = -(xf[3] * Xb[b, 0] + xf[4] * Xb[b, 1] + xf[5] * Xb[b, 2])
+        vz = -(xf[6] * Xb[b, 0] + xf[7] * Xb[b, 1] + xf[8] * Xb[b, 2])
+        lu = math.sqrt(ux * ux + uy * uy + uz * uz)
+        lv = math.sqrt(vx * vx + vy * vy + vz * vz)
+        mx = my = mz = 0.0
+        if lu > TRUSTED and lv > TRUSTED:
+            if (ux * vx + uy * vy + uz * vz) / (lu * lv) > FACES_COS:
+                mx, my, mz = ux / lu + vx / lv, uy / lu + vy / lv, uz / lu + vz / lv
+        elif lu > TRUSTED:
+            mx, my, mz = ux, uy, uz
+        elif lv > TRUSTED:
+            mx, my, mz = vx, vy, vz
+        mm = math.sqrt(mx * mx + my * my + mz * mz)
+        if mm > 1e-9 and mx * nx + my * ny + mz * nz > NEAR_COS * mm:
+            nx, ny, nz = mx / mm, my / mm, mz / mm
+    out[0] = nx
+    out[1] = ny
+    out[2] = nz
+    return s
+
+
+# |Xa - R Xb| is 2 for surfaces that face each other: a centre direction this far against it
+# (dot product) is taken as crossed. Larger leaves more tilted crossings alone; smaller turns
+# round directions the exits do not really oppose (near a medial axis, where they are arbitrary)
+CROSS_SIDE = 0.5
+# an exit direction is trusted beyond this length (``exit_directions``: the leaf's far side is
+# this fraction of its radius from the opposite surface); two trusted exits are one face pressed
+# on another within this angle (cosine): looser takes edges for faces, tighter leaves curved
+# faces to the bumpier centre directions (tilted by up to the leaves' size over their distance)
+TRUSTED = 0.5
+FACES_COS = 0.9
+# ... and they replace the centres' direction only within this of it (cosine): two coplanar side
+# faces at the corners of tooth tips pressed on tooth tips agree with each other, not with the
+# centres, which lie one above the other; looser keeps more of the tilt at a patch's edge
+NEAR_COS = 0.3
+# overlap over the smaller radius beyond which the hook treats a contact as deep (its normal may
+# then keep the side of approach)
+DEEP = 0.25
+
+
+def exit_directions(N, surface) -> np.ndarray:
+    """``(n, 4)`` per node of packed tree ``N``: a leaf's exit direction (from its centre
+    towards the nearest point of the mesh it fills, ``surface`` from ``geometry.surface``: the
+    outward gradient of the mesh's distance there), scaled by how much it can be trusted, zero
+    for inner nodes; then 1 where the node's centre lies inside the solid, else 0.
+
+    A leaf that spans its wall (its far side touches the opposite surface too) or sits at a
+    round object's centre lies on the medial axis, where the nearest point jumps between sides
+    and the direction is arbitrary. The length is the far side's distance from the surface over
+    the radius, clipped to 1: 1 for a leaf that touches one side only, 0 for one that fills the
+    wall.
+    """
+    from ..geometry.surface import signed_distances
+
+    X = np.zeros((N.shape[0], 4))
+    if not N.shape[0]:
+        return X
+    X[:, 3] = signed_distances(surface, N[:, :3])[0] < 0.0
+    leaf = np.flatnonzero(N[:, CC] == 0)
+    if leaf.size:
+        C, r = N[leaf, :3], N[leaf, 3]
+        G = signed_distances(surface, C)[1]
+        far = np.abs(signed_distances(surface, C - r[:, None] * G)[0])
+        X[leaf, :3] = G * np.clip(far / np.maximum(r, 1e-300), 0.0, 1.0)[:, None]
+        X[leaf, 3] = 1.0  # inner spheres lie inside by construction
+    return X
+
+
 BLEND_W = 21  # words of ``blend``'s accumulator
 
 

@@ -2,7 +2,7 @@
 import mujoco
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, coal_depth
 from scipy.spatial.transform import Rotation
 
 from mjist.jaw import haptic
@@ -81,18 +81,6 @@ def _directional_depth(bvh, Pmx, Pmd, up, hi=1e-3):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if hits(mid) else (lo, mid)
     return hi
-
-
-def _coal_depth(bvh, Pmx, Pmd):
-    """coal: deepest triangle-pair penetration of the two meshes (0 when they do not touch)."""
-    import coal
-
-    req = coal.CollisionRequest()
-    req.enable_contact = True
-    req.num_max_contacts = 1 << 20
-    res = coal.CollisionResult()
-    coal.collide(bvh[0], jawmod.coal_transform(Pmx), bvh[1], jawmod.coal_transform(Pmd), req, res)
-    return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
 
 
 def _static_press(model, h, gmx, gmd, bvh):
@@ -251,7 +239,7 @@ def test_hard_push_does_not_tunnel(scene):
     Pmx = _maxilla_pose(model, gmx)
     i = len(log["time"]) - 1
     Pmd = geom_pose_at(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
-    depth = _coal_depth((bvh[gmx], bvh[gmd]), Pmx, Pmd)
+    depth = coal_depth((bvh[gmx], bvh[gmd]), Pmx, Pmd)
     print(f"push: device {np.linalg.norm(log['coupling_force'][i]):.2f} N, IST depth {log['depth'][i] * 1e3:.3f} mm, "
           f"coal depth {depth * 1e3:.3f} mm")
     assert np.linalg.norm(log["coupling_force"][i]) > 3.0  # the device pushes hard ...

@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 import trimesh
-from conftest import ROOT
+from conftest import ROOT, coal_depth
 
 from mjist.jaw import pair as jawmod
 from mjist.mujoco import attach as A
@@ -156,8 +156,6 @@ def _straight_path(model, haptic, v, start=-4e-3, stop=2e-3, hold=300):
 def test_handle_speed_does_not_tunnel(haptic_scene, speed):
     """The handle slammed into the teeth at up to 0.5 m/s (0.5 mm per 1 ms step): the mandible stops
     on the maxilla's cusps, its true penetration (coal) stays within the IST depth + ε, then it settles."""
-    from test_haptic import _coal_depth
-
     model, h, haptic = haptic_scene
     path, p0, up = _straight_path(model, haptic, speed)
     log = haptic.run(model, h, path)
@@ -174,7 +172,7 @@ def test_handle_speed_does_not_tunnel(haptic_scene, speed):
     Pmx = geom_pose(d, gmx)
     i = int(np.argmax(log["depth"]))
     Pmd = geom_pose_at(model, gmd, log["mandible_pos"][i], log["mandible_quat"][i])
-    depth = _coal_depth(bvh, Pmx, Pmd)
+    depth = coal_depth(bvh, Pmx, Pmd)
     assert depth <= log["depth"][i] + h.pairs[0].error_bound and depth < 1.5e-3
     assert log["contacts"][-1] > 0 and v[-50:].max() < 0.05  # resting on the teeth, not bouncing off
 
