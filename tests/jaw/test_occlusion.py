@@ -92,6 +92,7 @@ def test_the_seat_holds_the_condyles_where_the_search_puts_it(cache):
     assert 0.4 < back[1] < 1.1 and abs(back[0]) < 0.3, back
 
 
+@pytest.mark.slow  # a whole 64-start search; CI covers the seat in the test above and the benchmark the rounds
 def test_a_free_seat_still_finds_the_designed_occlusion(cache):
     """The search as for a pair given open (the condyles' seat sampled 2 mm forward and back, in
     rounds, default 64 starts): the teeth, not the given condyle position, bring it to the designed
