@@ -75,3 +75,35 @@ def cached_tree(vertices, faces, params: dict, *, folder=None, progress: bool = 
     except OSError as exc:  # a read-only cache only costs the rebuild next time
         warnings.warn(f"cannot write the tree cache {folder!r} ({exc}); set MJIST_CACHE to a writable folder", RuntimeWarning, stacklevel=2)
     return tree, False
+
+
+EXITS_VERSION = 1  # bump when traverse.exit_directions changes what it computes
+
+
+def cached_exits(N, vertices, faces, compute, *, folder=None) -> np.ndarray:
+    """The exit directions of packed tree ``N`` over its mesh (``traverse.exit_directions``), from
+    the cache or from ``compute()`` (then stored). Keyed by the packed tree's and the mesh's bytes,
+    so a tree given by the caller is found too; an unreadable or mismatched file is recomputed."""
+    h = hashlib.sha256()
+    for a in (np.ascontiguousarray(N, np.float64), np.ascontiguousarray(vertices, np.float64),
+              np.ascontiguousarray(faces, np.int64)):
+        h.update(a.tobytes())
+    h.update(f"exits{EXITS_VERSION}".encode())
+    folder = cache_dir(folder)
+    path = os.path.join(folder, f"{h.hexdigest()[:40]}.exits.npy")
+    try:
+        X = np.load(path, allow_pickle=False)
+        if X.shape == (N.shape[0], 4) and X.dtype == np.float64 and np.isfinite(X).all():
+            return np.ascontiguousarray(X)
+    except (OSError, ValueError):
+        pass
+    X = np.ascontiguousarray(compute(), np.float64)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "wb") as f:
+            np.save(f, X)
+        os.replace(tmp, path)
+    except OSError:  # a read-only cache only costs the computation next time
+        pass
+    return X

@@ -94,7 +94,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
                           "(use mjist_geoms to pick)")
     gap = _load_trees(model, cfg, handle, used, trees, cache_dir, progress)
     slot_of = {g: k for k, g in enumerate(used)}
-    arrays, slots = _tree_tables(model, handle, slot_of)
+    arrays, slots = _tree_tables(model, handle, slot_of, cache_dir)
     _surface_tables(model, cfg, handle, slot_of, arrays)
     slots |= _pair_tables(model, cfg, handle, pairs, slot_of, gap, arrays)
     slots |= _primitive_tables(model, cfg, handle, prim_pairs, slot_of, gap, arrays)
@@ -151,10 +151,12 @@ def _load_trees(model, cfg: Config, handle: Handle, used: list[int], trees, cach
     return gap
 
 
-def _tree_tables(model, handle: Handle, slot_of: dict) -> tuple[dict, set]:
-    """The packed trees, their leaves' exit directions and the per-geom index the cfuncs read;
-    the traversal stack they need. The meshes packed for exact distances (``by_mesh``) are kept
-    for the surface narrow phase."""
+def _tree_tables(model, handle: Handle, slot_of: dict, cache_dir=None) -> tuple[dict, set]:
+    """The packed trees, their exit directions (cached beside the trees) and the per-geom index
+    the cfuncs read; the traversal stack they need. The meshes packed for exact distances
+    (``by_mesh``, built when the exits or the surface narrow phase need them) are kept for the
+    surface narrow phase."""
+    from ..cache import cached_exits
     from ..geometry.surface import build_surface
     from ..query.traverse import exit_directions, pack, stack_size
 
@@ -167,9 +169,14 @@ def _tree_tables(model, handle: Handle, slot_of: dict) -> tuple[dict, set]:
         gslot[g] = k
         N = pack(handle.trees[geom_name(model, g)])
         mid = int(model.geom_dataid[g])
-        if mid not in by_mesh:
-            by_mesh[mid] = build_surface(*mesh_of(model, g))
-        X = exit_directions(N, by_mesh[mid])
+        V, F = mesh_of(model, g)
+
+        def surface(mid=mid, V=V, F=F):
+            if mid not in by_mesh:
+                by_mesh[mid] = build_surface(V, F)
+            return by_mesh[mid]
+
+        X = cached_exits(N, V, F, lambda N=N: exit_directions(N, surface()), folder=cache_dir)
         packed.append(N)
         exits.append(X)
         tree_tab[3 * k] = N.ctypes.data
@@ -188,11 +195,17 @@ def _surface_tables(model, cfg: Config, handle: Handle, slot_of: dict, arrays: d
     (``geometry.surface``, shared by geoms of one mesh) and the per-geom table the cfuncs read."""
     nman = len(slot_of)
     tab = np.zeros(5 * max(nman, 1), np.int64)
-    by_mesh = arrays.pop("by_mesh")  # built for the exit directions; kept only when measured on
+    by_mesh = arrays.pop("by_mesh")  # built for exit directions not in the cache; kept only when measured on
     arrays.update(surf=tab, surfaces=[])
     if cfg.narrowphase != "surface":
         return
+    from ..geometry.surface import build_surface
+
     t0 = time.perf_counter()
+    for g in slot_of:
+        mid = int(model.geom_dataid[g])
+        if mid not in by_mesh:
+            by_mesh[mid] = build_surface(*mesh_of(model, g))
     for g, k in slot_of.items():
         s = by_mesh[int(model.geom_dataid[g])]
         handle.surfaces[geom_name(model, g)] = s

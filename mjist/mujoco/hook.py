@@ -208,6 +208,20 @@ def stack_room(E, d, need):
 @njit(cache=True, inline="always")
 def pair_trees(E, g1, g2):
     """The packed trees ``(Na, Nb)`` of managed geoms ``g1``, ``g2``."""
+    Na, Nb, _, _ = pair_arrays(E, g1, g2)
+    return Na, Nb
+
+
+@njit(cache=True, inline="always")
+def pair_exits(E, g1, g2):
+    """The trees' exit directions ``(Xa, Xb)`` of managed geoms ``g1``, ``g2`` (``traverse.exit_directions``)."""
+    _, _, Xa, Xb = pair_arrays(E, g1, g2)
+    return Xa, Xb
+
+
+@njit(cache=True, inline="always")
+def pair_arrays(E, g1, g2):
+    """``(Na, Nb, Xa, Xb)``: the packed trees of managed geoms ``g1``, ``g2`` and their exit directions."""
     nman = E[E_NMAN]
     gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
     trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
@@ -215,20 +229,9 @@ def pair_trees(E, g1, g2):
     kb = gslot[g2]
     Na = carray(abi.f64_ptr(trees[3 * ka]), (trees[3 * ka + 1], 8))
     Nb = carray(abi.f64_ptr(trees[3 * kb]), (trees[3 * kb + 1], 8))
-    return Na, Nb
-
-
-@njit(cache=True, inline="always")
-def pair_exits(E, g1, g2):
-    """The leaves' exit directions ``(Xa, Xb)`` of managed geoms ``g1``, ``g2`` (``traverse.exit_directions``)."""
-    nman = E[E_NMAN]
-    gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
-    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
-    ka = gslot[g1]
-    kb = gslot[g2]
     Xa = carray(abi.f64_ptr(trees[3 * ka + 2]), (trees[3 * ka + 1], 4))
     Xb = carray(abi.f64_ptr(trees[3 * kb + 2]), (trees[3 * kb + 1], 4))
-    return Xa, Xb
+    return Na, Nb, Xa, Xb
 
 
 @njit(cache=True, inline="always")

@@ -375,6 +375,16 @@ def min_distance_backtrack(Na, Nb, xf, st, sv, tol, pair, stop_at):
     return best, OK, visits
 
 
+@njit(cache=True, inline="always")
+def _offset(Na, Nb, xf, a, b):
+    """From A's node ``a`` to B's node ``b`` (A's frame): the centres' offset and its length."""
+    bx, by, bz = _to_a(xf, Nb, b)
+    dx = bx - Na[a, 0]
+    dy = by - Na[a, 1]
+    dz = bz - Na[a, 2]
+    return dx, dy, dz, math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
 # --------------------------------------------------------------------------- leaf pair geometry
 
 
@@ -438,11 +448,7 @@ def contact_normal(Na, Nb, xf, a, b, out, min_climb=0):
     """
     climbed = 0
     while True:
-        bx, by, bz = _to_a(xf, Nb, b)
-        dx = bx - Na[a, 0]
-        dy = by - Na[a, 1]
-        dz = bz - Na[a, 2]
-        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dx, dy, dz, d = _offset(Na, Nb, xf, a, b)
         ra = Na[a, 3]
         rb = Nb[b, 3]
         deep = ra + rb - d > CROSS * min(ra, rb)
@@ -471,11 +477,7 @@ def _climb_inside(Na, Nb, Xa, Xb, xf, a, b, out):
     highest such ancestors when the climb would leave both solids first (centres deep inside
     each, so their direction keeps the larger-scale geometry). False for coincident centres."""
     while True:
-        bx, by, bz = _to_a(xf, Nb, b)
-        dx = bx - Na[a, 0]
-        dy = by - Na[a, 1]
-        dz = bz - Na[a, 2]
-        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dx, dy, dz, d = _offset(Na, Nb, xf, a, b)
         ra = Na[a, 3]
         rb = Nb[b, 3]
         pa = int(Na[a, PAR]) if a != 0 else -1
@@ -521,11 +523,7 @@ def surface_normal(Na, Nb, Xa, Xb, xf, a, b, out):
     With ``Xa`` empty it is the centres' direction. Returns the pair's overlap over the smaller
     radius (the hook's "deep").
     """
-    bx, by, bz = _to_a(xf, Nb, b)
-    dx = bx - Na[a, 0]
-    dy = by - Na[a, 1]
-    dz = bz - Na[a, 2]
-    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    dx, dy, dz, d = _offset(Na, Nb, xf, a, b)
     ra = Na[a, 3]
     rb = Nb[b, 3]
     if d > 1e-300:
@@ -838,11 +836,7 @@ def lens_volume(ra, rb, d):
 @njit(cache=True)
 def _add_lens(Na, Nb, xf, a, b, acc):
     """Add the lens of leaf pair ``(a, b)`` to ``acc`` (see ``penetration``)."""
-    bx, by, bz = _to_a(xf, Nb, b)
-    dx = bx - Na[a, 0]
-    dy = by - Na[a, 1]
-    dz = bz - Na[a, 2]
-    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    dx, dy, dz, d = _offset(Na, Nb, xf, a, b)
     ra = Na[a, 3]
     rb = Nb[b, 3]
     v = lens_volume(ra, rb, d)

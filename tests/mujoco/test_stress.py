@@ -218,3 +218,27 @@ def test_long_haptic_chewing_has_no_energy_growth(haptic_scene):
     fmax = [np.linalg.norm(log["contact_force"][c * per:(c + 1) * per], axis=1).max() for c in range(cycles)]
     assert max(vmax[-3:]) <= 1.05 * max(vmax[1:4]), vmax
     assert max(fmax[-3:]) <= 1.2 * max(fmax[1:4]), fmax
+
+
+def test_exit_directions_cache_is_content_keyed_and_survives_a_corrupt_file(tmp_path):
+    """The leaves' exit directions are stored beside the trees: a second attach of the same tree
+    and mesh reads them, a changed tree computes anew, and a damaged file is recomputed."""
+    from mjist.cache import cached_exits
+
+    N = np.arange(40, dtype=np.float64).reshape(5, 8)
+    V, F = np.eye(3), np.array([[0, 1, 2]])
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return np.full((5, 4), float(len(calls)))
+
+    a = cached_exits(N, V, F, compute, folder=tmp_path)
+    b = cached_exits(N, V, F, compute, folder=tmp_path)
+    assert len(calls) == 1 and np.array_equal(a, b)
+    cached_exits(N + 1.0, V, F, compute, folder=tmp_path)
+    assert len(calls) == 2
+    for f in tmp_path.glob("*.exits.npy"):
+        f.write_bytes(b"not an array")
+    c = cached_exits(N, V, F, compute, folder=tmp_path)
+    assert len(calls) == 3 and (c == 3.0).all()
