@@ -238,12 +238,12 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
             judged += _judge_all(jp, fr)
             # the occlusal surfaces are those that meet: re-pick them where the best start closed
             # (a pair given far from its occlusion has its reference where only the front teeth meet)
-            best = max((i for i in range(len(judged)) if not settle[i]["unstable"]), key=lambda i: judged[i].score, default=0)
+            best = _best(judged, settle)
             if _shift_mm(judged[best].pose, picked, jp.sample.mandible_points) > BASIN_MM:
                 picked = judged[best].pose
                 jp.sample = _sample(jp, picked)
                 judged = _judge_all(jp, final)
-                best = max((i for i in range(len(judged)) if not settle[i]["unstable"]), key=lambda i: judged[i].score, default=0)
+                best = _best(judged, settle)
             centre = jp.body(judged[best].pose)
             rank_s += time.perf_counter() - t2
         t2 = time.perf_counter()
@@ -314,6 +314,11 @@ def _sample(jp: ScenePair, mandible_pose, n: int | None = ranking.POINTS) -> ran
     arch, spread evenly; None: every one)."""
     return ranking.occlusal_sample(jp.maxilla, jp.mandible, jp.maxilla_pose, mandible_pose, jp.frames["maxilla"], jp.hinge,
                                    surfaces=jp.surfaces, n=n if n is not None else 1 << 62)
+
+
+def _best(judged: list[ranking.Judgement], settle: list[dict]) -> int:
+    """The best-scored start that MuJoCo did not reset (0 when every one was)."""
+    return max((i for i in range(len(judged)) if not settle[i]["unstable"]), key=lambda i: judged[i].score, default=0)
 
 
 def _judge_all(jp: ScenePair, final: list[dict]) -> list[ranking.Judgement]:
@@ -393,7 +398,8 @@ def _close(jp: ScenePair, X, seconds: float, nthread: int, progress: bool, seats
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "condyles")
     control, mocap = None, int(mujoco.mjtState.mjSTATE_MOCAP_POS)
     if seats is not None and body >= 0 and model.body_mocapid[body] >= 0:
-        control = np.tile(model.body_pos[model.body_mocapid.argsort()[-model.nmocap:]].ravel(), (n, 1, 1))
+        mujoco.mj_resetData(model, d)  # every mocap body where the model puts it, in mocap order
+        control = np.tile(d.mocap_pos.ravel(), (n, 1, 1))
         k = model.body_mocapid[body]  # the other mocap bodies (a user's scene) stay where they are
         control[:, 0, 3 * k:3 * k + 3] = seats
     pts = jp.sample.mandible_points

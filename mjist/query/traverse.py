@@ -121,13 +121,20 @@ def _to_a(xf, N, j):
 
 
 @njit(cache=True, inline="always")
+def _offset(Na, Nb, xf, a, b):
+    """From A's node ``a`` to B's node ``b`` (A's frame): the centres' offset and its length."""
+    bx, by, bz = _to_a(xf, Nb, b)
+    dx = bx - Na[a, 0]
+    dy = by - Na[a, 1]
+    dz = bz - Na[a, 2]
+    return dx, dy, dz, math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True, inline="always")
 def pair_value(Na, Nb, xf, a, b):
     """Signed sphere distance of A's node ``a`` and B's node ``b`` (a lower bound below them)."""
-    x, y, z = _to_a(xf, Nb, b)
-    dx = x - Na[a, 0]
-    dy = y - Na[a, 1]
-    dz = z - Na[a, 2]
-    return math.sqrt(dx * dx + dy * dy + dz * dz) - Na[a, 3] - Nb[b, 3]
+    _, _, _, d = _offset(Na, Nb, xf, a, b)
+    return d - Na[a, 3] - Nb[b, 3]
 
 
 @njit(cache=True)
@@ -373,16 +380,6 @@ def min_distance_backtrack(Na, Nb, xf, st, sv, tol, pair, stop_at):
         if best <= stop_at:
             break
     return best, OK, visits
-
-
-@njit(cache=True, inline="always")
-def _offset(Na, Nb, xf, a, b):
-    """From A's node ``a`` to B's node ``b`` (A's frame): the centres' offset and its length."""
-    bx, by, bz = _to_a(xf, Nb, b)
-    dx = bx - Na[a, 0]
-    dy = by - Na[a, 1]
-    dz = bz - Na[a, 2]
-    return dx, dy, dz, math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 # --------------------------------------------------------------------------- leaf pair geometry
