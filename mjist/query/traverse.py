@@ -510,7 +510,8 @@ def surface_normal(Na, Nb, Xa, Xb, xf, a, b, out):
     ``Xa - R Xb`` (their first three columns) points from A into B for leaves of surfaces that meet, whatever their depth
     up to the middle of the thinner object. Only its sign is used, and only where it is
     clear: an exit direction is arbitrary at the medial axis (a ball's centre, a leaf filling
-    a wall), the centres' direction is not. Then the normal becomes the surfaces' own where
+    a wall), the centres' direction is not. Then a deep pair's normal (overlap beyond ``DEEP``
+    of the smaller radius) becomes the surfaces' own where
     their exits are trusted (``TRUSTED``): the mean of both when they agree (``FACES_COS``, two
     faces pressed together), the trusted one against a leaf without (a round object's centre),
     when within ``NEAR_COS`` of the centres' direction: a flat floor's normal instead of the
@@ -536,8 +537,9 @@ def surface_normal(Na, Nb, Xa, Xb, xf, a, b, out):
             nx, ny, nz = out[0], out[1], out[2]
         elif nx * ex + ny * ey + nz * ez < -CROSS_SIDE:
             nx, ny, nz = -nx, -ny, -nz
-        # the surfaces' own normal where they can be trusted: both exits when they agree (two
-        # faces pressed together), the one trusted exit against a round object's centre leaf;
+        # a deep pair takes the surfaces' own normal where they can be trusted (a shallow one keeps
+        # its centres' direction): both exits when they agree (two faces pressed together), the
+        # one trusted exit against a round object's centre leaf;
         # exits that disagree (an edge or a corner on a face) leave the centres' direction
         ux, uy, uz = Xa[a, 0], Xa[a, 1], Xa[a, 2]
         vx = -(xf[0] * Xb[b, 0] + xf[1] * Xb[b, 1] + xf[2] * Xb[b, 2])
@@ -554,7 +556,7 @@ def surface_normal(Na, Nb, Xa, Xb, xf, a, b, out):
         elif lv > TRUSTED:
             mx, my, mz = vx, vy, vz
         mm = math.sqrt(mx * mx + my * my + mz * mz)
-        if mm > 1e-9 and mx * nx + my * ny + mz * nz > NEAR_COS * mm:
+        if s > DEEP and mm > 1e-9 and mx * nx + my * ny + mz * nz > NEAR_COS * mm:
             nx, ny, nz = mx / mm, my / mm, mz / mm
     out[0] = nx
     out[1] = ny
