@@ -69,6 +69,7 @@ def build(
     branching: int = 4,
     seed: int = 0,
     repair: bool = False,
+    max_deviation: float | None = None,
     min_coverage: float | None = None,
     sparse: bool = False,
     progress: bool = False,
@@ -92,7 +93,11 @@ def build(
     seed : int
         Seed of the clustering; same mesh + parameters + seed gives the same tree.
     repair : bool
-        Let trimesh fix degenerate faces, winding, inversion and holes (see ``load_mesh``).
+        Fix degenerate faces, winding and inversion, and close an open or many-piece surface
+        (see ``load_mesh``); ε is certified for the closed surface, and ``info["closure"]``
+        says how far that is from the input (add it to ε against the input).
+    max_deviation : float, optional
+        With ``repair``: the farthest the closing may move an input vertex (mesh units).
     min_coverage : float, optional
         Also fill the interior gaps between spheres, level by level, until the leaves fill
         this fraction of the mesh volume (e.g. 0.9) or the lattice reaches the resolution the
@@ -131,7 +136,7 @@ def build(
     bar = _Progress(progress, 5)
     t0 = time.perf_counter()
     bar.stage("load + validate")
-    m = load_mesh(mesh, repair=repair)
+    m = load_mesh(mesh, repair=repair, max_deviation=max_deviation)
     load_s = time.perf_counter() - t0
     bar.step(f"{len(m.faces)} faces, {m.shells} shell(s)")
     max_error = _check_target(m, max_error, leaves, params)
@@ -154,6 +159,8 @@ def build(
     run.warn(eps)
     user = {"max_error": max_error, "leaves": leaves, "branching": int(branching), "seed": int(seed), "repair": bool(repair),
             "min_coverage": None if min_coverage is None else float(min_coverage), "sparse": bool(sparse)}
+    if max_deviation is not None:
+        user["max_deviation"] = float(max_deviation)
     return InnerSphereTree(
         **arrays, error_bound=float(eps), error_lower=float(eps_lo), mesh_volume=m.volume, mesh_hash=m.content_hash,
         params=user, timings=run.timings, info=run.info(mean_gap),
@@ -462,6 +469,7 @@ class _Build:
             "finest_spacing": self.vox.spacing(self.last_level),
             "points_evaluated": int(self.vox.points_evaluated),
             "repairs": list(m.repairs),
+            "closure": m.closure.as_dict() if m.closure is not None else None,
             "mean_gap": mean_gap,
             "crossed_faces": int(self.vox.crossed_faces),
             "stalled_faces": int(len(stalled)),

@@ -239,6 +239,37 @@ def closest_on_triangle(px, py, pz, V, i0, i1, i2):
 
 
 @njit(cache=True, inline="always")
+def _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz):
+    """Closest point of segment ``ab`` to ``p`` and its parameter along it (0 at ``a``)."""
+    ux, uy, uz = bx - ax, by - ay, bz - az
+    uu = ux * ux + uy * uy + uz * uz
+    t = ((px - ax) * ux + (py - ay) * uy + (pz - az) * uz) / uu if uu > 0.0 else 0.0
+    t = min(max(t, 0.0), 1.0)
+    return ax + t * ux, ay + t * uy, az + t * uz, t
+
+
+@njit(cache=True)
+def _closest_on_sliver(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """``closest_on_triangle_xyz`` of a zero-area triangle: the nearest of its three edges (a
+    degenerate face in a mesh that closing or a conversion left must not divide by zero)."""
+    x, y, z, t = _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz)
+    best = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+    qx, qy, qz = x, y, z
+    feature = VERT_A if t <= 0.0 else (VERT_B if t >= 1.0 else EDGE_AB)
+    x, y, z, t = _closest_on_segment(px, py, pz, ax, ay, az, cx, cy, cz)
+    d = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+    if d < best:
+        best, qx, qy, qz = d, x, y, z
+        feature = VERT_A if t <= 0.0 else (VERT_C if t >= 1.0 else EDGE_AC)
+    x, y, z, t = _closest_on_segment(px, py, pz, bx, by, bz, cx, cy, cz)
+    d = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+    if d < best:
+        qx, qy, qz = x, y, z
+        feature = VERT_B if t <= 0.0 else (VERT_C if t >= 1.0 else EDGE_BC)
+    return qx, qy, qz, feature
+
+
+@njit(cache=True, inline="always")
 def closest_on_triangle_xyz(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """``closest_on_triangle`` of the triangle with corners ``a, b, c`` given as floats."""
     abx, aby, abz = bx - ax, by - ay, bz - az
@@ -255,7 +286,7 @@ def closest_on_triangle_xyz(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
         return bx, by, bz, VERT_B
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        v = d1 / (d1 - d3)
+        v = d1 / (d1 - d3) if d1 - d3 > 0.0 else 0.0  # zero: a and b coincide
         return ax + v * abx, ay + v * aby, az + v * abz, EDGE_AB
     cpx, cpy, cpz = px - cx, py - cy, pz - cz
     d5 = _dot(abx, aby, abz, cpx, cpy, cpz)
@@ -264,12 +295,15 @@ def closest_on_triangle_xyz(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
         return cx, cy, cz, VERT_C
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        w = d2 / (d2 - d6)
+        w = d2 / (d2 - d6) if d2 - d6 > 0.0 else 0.0
         return ax + w * acx, ay + w * acy, az + w * acz, EDGE_AC
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        e = (d4 - d3) + (d5 - d6)
+        w = (d4 - d3) / e if e > 0.0 else 0.0
         return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), EDGE_BC
+    if va + vb + vc <= 0.0:  # a zero-area triangle (its corners on a line) the tests above did not place
+        return _closest_on_sliver(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     denom = 1.0 / (va + vb + vc)
     v = vb * denom
     w = vc * denom

@@ -143,15 +143,16 @@ def _edge_defects(tm) -> tuple[int, int]:
     return int((counts == 1).sum()), int((counts > 2).sum())
 
 
-def _check_closed(tm, repair: bool, repairs: list):
-    """Refuse an open or non-manifold surface, or close it with MeshFix (``geometry.repair``)
-    when ``repair``. Returns the closed mesh and the closure report (``None`` when closed already)."""
+def _check_closed(tm, repair: bool, repairs: list, max_deviation=None):
+    """Refuse an open or non-manifold surface, or close it (``geometry.repair``) when ``repair``,
+    moving the input by at most ``max_deviation``. Returns the closed mesh and the closure report
+    (``None`` when closed already)."""
     if tm.is_watertight:
         return tm, None
     if repair:
         from .repair import close_surface
 
-        tm, closure = close_surface(tm)
+        tm, closure = close_surface(tm, max_deviation)
         repairs.append(closure.describe())
         return tm, closure
     boundary, nonmanifold = _edge_defects(tm)
@@ -161,8 +162,8 @@ def _check_closed(tm, repair: bool, repairs: list):
     if nonmanifold:
         what.append(f"{nonmanifold} non-manifold edges shared by more than two faces")
     raise MeshError(f"mesh is not closed: {', '.join(what)}. An inner sphere tree needs a watertight surface: "
-                    "pass repair=True (--repair) to close it with MeshFix (the added faces are reported), or close it "
-                    "in a mesh editor")
+                    "pass repair=True (--repair) to close it (MeshFix or the winding number; how far that moves the "
+                    "surface and what it adds are reported), or close it in a mesh editor")
 
 
 def _check_winding(tm, repair: bool, repairs: list) -> None:
@@ -197,7 +198,7 @@ def _outward_volume(tm, scale: float, repair: bool, repairs: list) -> float:
     return volume
 
 
-def load_mesh(mesh, *, repair: bool = False) -> Mesh:
+def load_mesh(mesh, *, repair: bool = False, max_deviation: float | None = None) -> Mesh:
     """Load and validate a closed triangle mesh.
 
     Parameters
@@ -206,9 +207,13 @@ def load_mesh(mesh, *, repair: bool = False) -> Mesh:
         The surface. Files are read with trimesh (STL, OBJ, PLY, ...). Coincident vertices
         are merged (STL and OBJ files with normals store them split); nothing else changes.
     repair : bool
-        Drop degenerate faces, fix winding and inversion (trimesh), fill simple holes
-        (trimesh) and close any other open surface with MeshFix (``geometry.repair``). What
-        was changed is listed in ``Mesh.repairs`` (and ``Mesh.closure``: the area added).
+        Drop degenerate faces, fix winding and inversion (trimesh), and close an open or
+        many-piece surface (``geometry.repair.close_surface``: MeshFix, else the generalized
+        winding number). What was changed is listed in ``Mesh.repairs`` (and ``Mesh.closure``:
+        how far the input moved, the area added).
+    max_deviation : float, optional
+        With ``repair``: the farthest an input vertex may end up from the closed surface, in
+        the mesh's units (default ``geometry.repair.MAX_DEVIATION_RELATIVE`` of its size).
 
     Raises
     ------
@@ -222,7 +227,7 @@ def load_mesh(mesh, *, repair: bool = False) -> Mesh:
     if scale == 0.0:
         raise MeshError("mesh is degenerate: all vertices coincide")
     _drop_degenerate(tm, scale, repair, repairs)
-    tm, closure = _check_closed(tm, repair, repairs)
+    tm, closure = _check_closed(tm, repair, repairs, max_deviation)
     _check_winding(tm, repair, repairs)
     volume = _outward_volume(tm, scale, repair, repairs)
     shells = len(trimesh.graph.connected_components(tm.face_adjacency, nodes=np.arange(len(tm.faces))))

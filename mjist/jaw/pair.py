@@ -141,19 +141,33 @@ def arch_of(filename: str) -> str | None:
     return hits.pop() if len(hits) == 1 else None
 
 
-def _load(path, name: str, repair: str):
-    """A jaw mesh validated; an open surface closed with MeshFix when ``repair`` is "auto" or "on"."""
+# how far closing an open scan may move it (mm): a segmentation's voxel, well under a cusp's height
+MAX_DEVIATION_MM = 0.2
+
+
+def _load(path, name: str, repair: str, unit: str = "auto", max_deviation_mm: float | None = None):
+    """A jaw mesh validated; an open surface closed (``geometry.repair``) when ``repair`` is "auto"
+    or "on", moving it by at most ``max_deviation_mm`` (``MAX_DEVIATION_MM``) in the file's
+    ``unit`` (detected from its size when "auto")."""
     from ..errors import MeshError
-    from ..geometry.mesh import load_mesh
+    from ..geometry.mesh import _finite, _to_trimesh, load_mesh
+    from .orient import UNITS, _unit_of
 
     if repair not in ("auto", "on", "off", True, False):
         raise ValueError(f"repair={repair!r}: use auto (close open scans), on or off")
     try:
-        return load_mesh(path, repair=repair in ("on", True))
+        return load_mesh(path, repair=False)
     except MeshError as exc:
-        if repair != "auto" or "not closed" not in str(exc):
+        if repair in ("off", False) or (repair == "auto" and "not closed" not in str(exc)):
             raise MeshError(f"{name} ({path}): {exc}") from exc
-    return load_mesh(path, repair=True)
+    tm = _finite(_to_trimesh(path))
+    if unit == "auto":
+        unit = _unit_of(float(np.ptp(tm.vertices, axis=0).max())) or "mm"
+    limit = (MAX_DEVIATION_MM if max_deviation_mm is None else float(max_deviation_mm)) * 1e-3 / UNITS[unit]
+    try:
+        return load_mesh(tm, repair=True, max_deviation=limit)
+    except MeshError as exc:
+        raise MeshError(f"{name} ({path}): {exc} (--max-deviation takes millimetres)") from exc
 
 
 def _closure_notes(raw: dict, o, notes: list) -> None:
@@ -166,10 +180,14 @@ def _closure_notes(raw: dict, o, notes: list) -> None:
             continue
         s = o.scales[i] * 1e3  # file units -> mm
         where = ", ".join(f"{a:.1f}" for a in o.apply(c.added_centre[None], name)[0] * 1e3)
-        msg = (f"{name} is an open surface ({c.boundary_edges} open edges): MeshFix added {c.added_area * s * s:.1f} mm² "
-               f"around ({where}) mm in the jaw frame and kept {100 * c.kept_fraction:.1f}% of the scan's vertices. The "
-               "tree's certified error holds for the closed surface; the added faces are not anatomy, so contacts on "
-               "them are not real")
+        how = {"meshfix": "MeshFix", "winding": "the winding number"}[c.method]
+        left = (f"; left out {c.left_out} loose piece(s) enclosing nothing ({c.left_out_area * s * s:.2f} mm²)"
+                if c.left_out else "")
+        msg = (f"{name} is an open surface ({c.boundary_edges} open edges in {c.pieces} piece(s)): closed with {how}, which "
+               f"moved the scan by at most {c.hausdorff * s:.3f} mm (mean {c.mean_deviation * s:.4f} mm) and added "
+               f"{c.added_area * s * s:.1f} mm² around ({where}) mm in the jaw frame{left}. The tree's certified error holds "
+               "for the closed surface (add the deviation against the scan); the added faces are not anatomy, so contacts "
+               "on them are not real")
         warnings.warn(msg, stacklevel=3)
         notes.append(msg)
 
@@ -238,7 +256,8 @@ def _closed_about_condyles(mx, md, pose, notes: list, info: dict) -> np.ndarray:
     return hinge_pose(turn, h)
 
 
-def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None, repair="auto"):
+def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None, repair="auto",
+              max_deviation_mm=None):
     """A jaw pair in the jaw frame (metres, +y up, +z anterior) and its occlusion.
 
     Parameters
@@ -254,7 +273,10 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
         Centre of the condylar axis, in the maxilla file's coordinates and units. Default: the
         condyles when the mandible has them, else Bonwill's estimate from the incisal point.
     repair : "auto", "on" or "off"
-        "auto" closes an open surface (a scan) with MeshFix and warns; "off" refuses it.
+        "auto" closes an open or many-piece surface (a scan, a segmentation; ``geometry.repair``)
+        and warns; "on" also fixes winding, inversion and degenerate faces; "off" refuses them.
+    max_deviation_mm : float, optional
+        The farthest closing may move a scan's vertex (default ``MAX_DEVIATION_MM``).
 
     Returns
     -------
@@ -282,7 +304,10 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
 
     paths = _find(folder, maxilla, mandible)
     notes: list[str] = []
-    raw = {name: _load(p, name, repair) for name, p in paths.items()}
+    from .orient import parse_units
+
+    given = dict(zip(("maxilla", "mandible"), parse_units(units)))
+    raw = {name: _load(p, name, repair, given[name], max_deviation_mm) for name, p in paths.items()}
     o, touch = _orientation(raw["maxilla"], raw["mandible"], units, up, notes)
     _closure_notes(raw, o, notes)
     mx, md = _in_jaw_frame(raw["maxilla"], o, "maxilla"), _in_jaw_frame(raw["mandible"], o, "mandible")

@@ -308,11 +308,11 @@ KINDS = {"closure": "jaw_closure.xml", "occlusion": "occlusion_search.xml", "hap
 
 
 def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None,
-               repair="auto", tmj: bool = True, output=None, progress: bool = True, **kwargs):
+               repair="auto", max_deviation_mm=None, tmj: bool = True, output=None, progress: bool = True, **kwargs):
     """Write the ``kind`` scene ("closure", "occlusion" or "haptic") of a user's jaw pair; return its path.
 
     The pair (``folder``, or ``maxilla`` + ``mandible`` files) is read by ``pair.load_pair`` with
-    ``units``, ``up``, ``hinge`` and ``repair`` (detected when "auto"). A pair already in the
+    ``units``, ``up``, ``hinge``, ``repair`` (detected when "auto") and ``max_deviation_mm``. A pair already in the
     jaw frame is referenced where it lies; any other (converted, repaired, or an STL beyond
     MuJoCo's 200 k-face limit) is written once as OBJ in the jaw frame beside the scene.
     ``tmj`` keeps the occlusion search's soft TMJ ball joint at the hinge (also at Bonwill's
@@ -329,7 +329,8 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
     if kind not in KINDS:
         raise ValueError(f"scene kind {kind!r} must be one of {', '.join(KINDS)}")
     writers = {"closure": jaw_closure_xml, "occlusion": occlusion_search_xml, "haptic": haptic_jaw_xml}
-    mx, md, info = load_pair(folder, maxilla=maxilla, mandible=mandible, units=units, up=up, hinge=hinge, repair=repair)
+    mx, md, info = load_pair(folder, maxilla=maxilla, mandible=mandible, units=units, up=up, hinge=hinge, repair=repair,
+                             max_deviation_mm=max_deviation_mm)
     path = Path(output) if output else Path(out_dir) / KINDS[kind]
     os.makedirs(path.parent, exist_ok=True)
     files = {k: os.path.abspath(v) for k, v in info["paths"].items()}

@@ -668,7 +668,7 @@ def _surfaces(meshes, trees):
             raise ValueError(f"tree_{name} is a sphere set (mjist.sphere_tree), not a mesh's tree: it has no surface to "
                              "measure; leave meshes unset")
         try:
-            m = load_mesh(mesh, repair=bool(tree.params.get("repair", False)))
+            m = load_mesh(mesh, repair=bool(tree.params.get("repair", False)), max_deviation=tree.params.get("max_deviation"))
         except MeshError as exc:
             raise MeshError(f"mesh_{name}: {exc}") from None
         if m.content_hash != tree.mesh_hash:

@@ -124,3 +124,46 @@ def test_the_rest_of_mjist_does_not_import_ray():
             "print(json.dumps('ray' in sys.modules))")
     out = subprocess.run([sys.executable, "-c", "import json; " + code], capture_output=True, text=True, check=True)
     assert json.loads(out.stdout) is False
+
+
+@pytest.mark.slow
+def test_a_cohort_survives_losing_a_node(cohort_input, cache, tmp_path):
+    """A two-node local Ray cluster (``ray.cluster_utils.Cluster``: a head with one CPU, a worker
+    node with two) runs the cohort; the worker node is killed while patients run on it. Ray
+    retries the lost tasks (and rebuilds their lost inputs) on the head: every patient finishes
+    once, with the rows a serial run gives, and a rerun does nothing."""
+    import threading
+    import time
+
+    from ray.cluster_utils import Cluster
+
+    reference = run(cohort_input, tmp_path / "serial", serial=True, progress=False, cache=cache, **FAST)
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    node = cluster.add_node(num_cpus=2)
+    cluster.wait_for_nodes()
+    out = tmp_path / "cluster"
+    killed = {}
+
+    def kill_when_running():
+        # as soon as the first patient has started writing, the others are on the worker node's CPUs
+        deadline = time.time() + 120
+        while time.time() < deadline and not any((out / "patients").glob("*/*")):
+            time.sleep(0.1)
+        cluster.remove_node(node, allow_graceful=False)
+        killed["at"] = time.time()
+
+    t = threading.Thread(target=kill_when_running, daemon=True)
+    try:
+        t.start()
+        s = run(cohort_input, out, address=cluster.address, progress=False, cache=cache, **FAST)
+        t.join(timeout=150)
+        assert "at" in killed, "the worker node was not removed during the run"
+        assert (s["done"], s["failed"]) == (2, 1)
+        rows = _rows(out / "cohort.csv")
+        assert sorted(r["patient"] for r in rows) == sorted(["broken", *GOOD])  # each patient once
+        assert _without_times(rows) == _without_times(_rows(tmp_path / "serial" / "cohort.csv"))
+        again = run(cohort_input, out, address=cluster.address, progress=False, cache=cache, **FAST)
+        assert again["ran"] == 0 and again["skipped"] == 3
+    finally:
+        cluster.shutdown()
+    assert reference["done"] == 2
