@@ -18,7 +18,8 @@ the surface, in one of two ways:
     Barill et al. 2018) decides inside and outside of the whole input at once, whatever its
     pieces and openings: a point is inside where the input winds about it more than half a
     turn. Signed by it, the distance to the input is sampled on an adaptive grid that refines
-    only where the surface passes, and contoured by libigl's sparse marching cubes. Right for
+    only where the surface passes, and contoured by libigl's sparse marching cubes. Near the
+    input the nearest face's side is used instead, which keeps thin walls near an opening. Right for
     surfaces open by design (a bone cut at the scan's edge) and split into many pieces. It
     rounds features finer than its cells (``WINDING_CELL`` of the deviation allowed).
 
@@ -54,6 +55,12 @@ COARSE_NODES = 60_000
 # winding number: more keeps thicker walls near an opening whole, but trusts faces further
 # from them (a face seen through an opening is the wrong side's)
 NEAR = 2.0
+# the winding number's contour (tens of times the input's faces at a fine cell) is simplified to
+# the first of these multiples of the input's faces that stays closed and meets the deviation
+# allowed (the fewest faces the tree and MuJoCo then carry); the simplifier's aggression trades
+# its speed for how closely it keeps the shape
+DECIMATE_FACES = (2, 4, 8)
+DECIMATE_AGGRESSION = 5.0
 # MeshFix's closing is taken when its solid and the input's winding-number solid differ by at most
 # this fraction of the volume (``_solid_mismatch``, from this many random points): more accepts
 # pieces closed on their own that belong to one surface, less sends ordinary scans to the
@@ -192,12 +199,6 @@ class _Grid:
         self.n = nodes  # nodes per axis
         self.keys = np.empty(0, np.int64)
         self.vals = np.empty(0)
-        e, counts = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0,
-                              return_counts=True)
-        rim = e[counts == 1]
-        self.rim_edges = np.sort(rim[:, 0] * len(V) + rim[:, 1])
-        self.rim_vertex = np.zeros(len(V), bool)
-        self.rim_vertex[rim.ravel()] = True
 
     def key(self, q):
         return (q[:, 0] * self.n[1] + q[:, 1]) * self.n[2] + q[:, 2]
@@ -221,26 +222,14 @@ class _Grid:
         return self.vals[np.searchsorted(self.keys, u)][inv].reshape(k.shape)
 
     def _signed(self, P):
-        """Distance to the input, negative inside. Within ``NEAR`` cells of the input, where the
-        nearest point is inside a face or on an edge or vertex shared by two faces, the side is
-        that face's (its angle-weighted pseudonormal): exact there, and it keeps a thin wall near
-        an opening, whose winding number falls below 1/2. Elsewhere, and where the nearest point is
-        on the input's rim, the winding number says."""
+        """Distance to the input, negative inside. Within ``NEAR`` cells of the input the side is
+        the nearest face's (its angle-weighted pseudonormal): exact beside a face, and it keeps a
+        thin wall near an opening whole, where the winding number falls below 1/2; beyond an
+        opening's rim it continues the rim's faces by at most ``NEAR`` cells. Farther away the
+        winding number says."""
         igl = self._igl
-        S, I, C, _ = igl.signed_distance(P, self.V, self.F, igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
-        f = self.F[I]
-        rim = self.rim_vertex[f].any(1)
-        j = np.flatnonzero(rim)
-        if len(j):
-            L = igl.barycentric_coordinates(C[j], self.V[f[j, 0]], self.V[f[j, 1]], self.V[f[j, 2]])
-            tiny = 1e-9
-            on = np.zeros(len(j), bool)
-            for c in range(3):  # the nearest point on a rim vertex, or on a rim edge (opposite corner c)
-                on |= (L[:, c] > 1 - tiny) & self.rim_vertex[f[j, c]]
-                a, b = f[j, (c + 1) % 3], f[j, (c + 2) % 3]
-                on |= (L[:, c] < tiny) & np.isin(np.minimum(a, b) * len(self.V) + np.maximum(a, b), self.rim_edges)
-            rim[j] = on
-        far = np.abs(S) > NEAR * self.h  # TRY
+        S, *_ = igl.signed_distance(P, self.V, self.F, igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+        far = np.abs(S) > NEAR * self.h
         if far.any():
             w = igl.fast_winding_number(self.V, self.F, P[far])
             S[far] = np.where(w > 0.5, -np.abs(S[far]), np.abs(S[far]))
@@ -301,6 +290,20 @@ def close_winding(tm: trimesh.Trimesh, cell: float) -> trimesh.Trimesh:
     if not shells:
         raise MeshError("the input encloses no volume its winding number can find (a flat patch or a few loose pieces)")
     return trimesh.util.concatenate(shells)
+
+
+def _decimate(out: trimesh.Trimesh, faces: int) -> trimesh.Trimesh | None:
+    """The contour simplified to about ``faces`` faces by quadric edge collapses
+    (``fast_simplification``), or ``None`` when it has fewer already or the result is not closed."""
+    import fast_simplification
+
+    if len(out.faces) <= faces:
+        return None
+    V, F = fast_simplification.simplify(np.asarray(out.vertices, np.float64), np.asarray(out.faces, np.int32),
+                                        target_count=int(faces), agg=DECIMATE_AGGRESSION)
+    small = trimesh.Trimesh(V, F, process=False)
+    small.remove_unreferenced_vertices()
+    return small if small.is_watertight and small.is_winding_consistent and small.volume > 0 else None
 
 
 def _closed_set(g: _Grid, cells: np.ndarray) -> np.ndarray:
@@ -421,6 +424,13 @@ def close_surface(tm: trimesh.Trimesh, max_deviation: float | None = None,
             tried.append(f"{how}: {exc}")
             continue
         report = _measure(tm, out, how, pieces, boundary, max_deviation, left_out)
+        if how == "winding" and report.hausdorff <= max_deviation:
+            for times in DECIMATE_FACES:  # the fewest faces that stay closed and within the deviation
+                small = _decimate(out, max(times * len(tm.faces), 1000))
+                if small is not None:
+                    small_report = _measure(tm, small, how, pieces, boundary, max_deviation, left_out)
+                    if small_report.hausdorff <= max_deviation:
+                        return small, small_report
         if report.hausdorff <= max_deviation:
             return out, report
         tried.append(f"{how}: moved the input by up to {report.hausdorff:.3g} (mean {report.mean_deviation:.3g})")
