@@ -87,6 +87,12 @@ def _to_trimesh(mesh) -> trimesh.Trimesh:
     return tm
 
 
+def read_surface(mesh) -> trimesh.Trimesh:
+    """``mesh`` (a path, a trimesh, ``(vertices, faces)`` or a ``Mesh``) as a trimesh, checked for
+    emptiness and non-finite coordinates, coincident vertices merged; not yet validated as closed."""
+    return _finite(_to_trimesh(mesh))
+
+
 def _finite(tm) -> trimesh.Trimesh:
     """``tm`` checked for emptiness and non-finite coordinates, coincident vertices merged."""
     v = np.asarray(tm.vertices, dtype=np.float64)
@@ -221,7 +227,7 @@ def load_mesh(mesh, *, repair: bool = False, max_deviation: float | None = None)
         Empty, non-finite, degenerate, open, non-manifold, inconsistently wound, inverted
         or zero-volume meshes; the message names the defect and the fix.
     """
-    tm = _finite(_to_trimesh(mesh))
+    tm = read_surface(mesh)
     repairs: list[str] = []
     scale = float(np.linalg.norm(tm.vertices.max(0) - tm.vertices.min(0)))
     if scale == 0.0:

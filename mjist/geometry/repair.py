@@ -350,7 +350,8 @@ def _measure(tm, out, method, pieces, boundary, max_deviation, left_out=None) ->
     Vo, Fo = np.asarray(out.vertices, np.float64), np.asarray(out.faces, np.int64)
     Vi, Fi = np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64)
     dev = BVH.of_triangles(Vo, Fo).distance(Vi, Vo, Fo)
-    counted = _outer(tm, max_deviation / 4)
+    outer = _outer(tm, max_deviation / 4)
+    counted = outer.copy()
     lost = np.zeros(len(Vi), bool)
     if left_out is not None and left_out.any():
         lost[Fi[left_out].ravel()] = True
@@ -370,7 +371,7 @@ def _measure(tm, out, method, pieces, boundary, max_deviation, left_out=None) ->
                    float(dev[counted].mean()) if counted.any() else 0.0, float(max_deviation),
                    float((dev < tol).mean()), float(area.sum()), centre, extent, n_left,
                    float(tm.area_faces[left_out].sum()) if n_left else 0.0,
-                   float(dev[lost].max()) if lost.any() else 0.0, int((~_outer(tm, max_deviation / 4)).sum()))
+                   float(dev[lost].max()) if lost.any() else 0.0, int((~outer).sum()))
 
 
 def close_surface(tm: trimesh.Trimesh, max_deviation: float | None = None,
@@ -423,14 +424,14 @@ def close_surface(tm: trimesh.Trimesh, max_deviation: float | None = None,
         except MeshError as exc:
             tried.append(f"{how}: {exc}")
             continue
-        report = _measure(tm, out, how, pieces, boundary, max_deviation, left_out)
-        if how == "winding" and report.hausdorff <= max_deviation:
+        if how == "winding":
             for times in DECIMATE_FACES:  # the fewest faces that stay closed and within the deviation
                 small = _decimate(out, max(times * len(tm.faces), 1000))
                 if small is not None:
                     small_report = _measure(tm, small, how, pieces, boundary, max_deviation, left_out)
                     if small_report.hausdorff <= max_deviation:
                         return small, small_report
+        report = _measure(tm, out, how, pieces, boundary, max_deviation, left_out)
         if report.hausdorff <= max_deviation:
             return out, report
         tried.append(f"{how}: moved the input by up to {report.hausdorff:.3g} (mean {report.mean_deviation:.3g})")

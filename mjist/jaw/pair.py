@@ -150,7 +150,7 @@ def _load(path, name: str, repair: str, unit: str = "auto", max_deviation_mm: fl
     or "on", moving it by at most ``max_deviation_mm`` (``MAX_DEVIATION_MM``) in the file's
     ``unit`` (detected from its size when "auto")."""
     from ..errors import MeshError
-    from ..geometry.mesh import _finite, _to_trimesh, load_mesh
+    from ..geometry.mesh import load_mesh, read_surface
     from .orient import UNITS, _unit_of
 
     if repair not in ("auto", "on", "off", True, False):
@@ -160,7 +160,7 @@ def _load(path, name: str, repair: str, unit: str = "auto", max_deviation_mm: fl
     except MeshError as exc:
         if repair in ("off", False) or (repair == "auto" and "not closed" not in str(exc)):
             raise MeshError(f"{name} ({path}): {exc}") from exc
-    tm = _finite(_to_trimesh(path))
+    tm = read_surface(path)
     if unit == "auto":
         unit = _unit_of(float(np.ptp(tm.vertices, axis=0).max())) or "mm"
     limit = (MAX_DEVIATION_MM if max_deviation_mm is None else float(max_deviation_mm)) * 1e-3 / UNITS[unit]
