@@ -217,7 +217,7 @@ def _cmd_cohort(args) -> int:
             s = run(args.input, args.out, synthetic_n=args.synthetic, seed=args.seed, spacing=args.spacing,
                     workers=args.workers, address=args.address, serial=args.serial, retry_failed=args.retry_failed,
                     progress=not args.quiet, max_error=args.max_error, starts=args.starts, picture=not args.no_picture,
-                    cache=args.cache)
+                    cache=args.cache, wafer=args.wafer)
         except RuntimeError as exc:  # Ray or scikit-image missing: the message says what to install
             print(f"mjist cohort: {exc}", file=sys.stderr)
             return 2
@@ -235,6 +235,17 @@ def _cmd_cohort(args) -> int:
         return 0 if not s["failed"] else 1
 
     return _user_errors("cohort", go)
+
+
+def _cmd_wafer(args) -> int:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from .jaw import waferjob
+
+    return _user_errors("wafer", lambda: waferjob.main(
+        args.folder, output=args.output, pose=args.pose, search=args.search, opening_deg=args.opening,
+        clearance_mm=args.clearance, thickness_mm=args.thickness, pair=_pair_options(args), hold=not args.no_hold,
+        picture=not args.no_picture, starts=args.starts, seed=args.seed, threads=args.threads, progress=not args.quiet),
+        extra=(RuntimeError,))
 
 
 def _cmd_bench(args) -> int:
@@ -400,8 +411,33 @@ def _add_cohort(sub) -> None:
     co.add_argument("--cache", default=None, help="tree cache folder (default $MJIST_CACHE or ~/.cache/mjist; "
                                                    "on a cluster: a folder every node mounts)")
     co.add_argument("--no-picture", action="store_true", help="skip each patient's rendering")
+    co.add_argument("--wafer", action="store_true", help="also make and prove a surgical wafer at each best occlusion "
+                                                         "(patients/<id>/wafer.stl, .json, .png; figures in cohort.csv)")
     co.add_argument("-q", "--quiet", action="store_true", help="no progress")
     co.set_defaults(func=_cmd_cohort)
+
+
+def _add_wafer(sub) -> None:
+    wf = sub.add_parser("wafer", help="make a surgical wafer at the occlusion, prove it prints, seats and holds; write it as STL")
+    wf.add_argument("folder", nargs="?", default=None, help="folder with the two arches (default: the bundled pair)")
+    src = wf.add_mutually_exclusive_group()
+    src.add_argument("--pose", metavar="OCCLUSION_JSON", help="the occlusion.json of `mjist occlusion` on this pair: its best pose")
+    src.add_argument("--search", action="store_true", help="search the occlusion first (default: the pair's own occlusion)")
+    wf.add_argument("--opening", type=float, default=None, metavar="DEG",
+                    help="open the mandible this far about the hinge (default: the smallest that leaves --thickness)")
+    wf.add_argument("--clearance", type=float, default=0.1, metavar="MM", help="gap between each arch and its imprint (default 0.1)")
+    wf.add_argument("--thickness", type=float, default=1.5, metavar="MM", help="minimum thickness of the wafer (default 1.5)")
+    wf.add_argument("-o", "--output", default="out/wafer/wafer.stl",
+                    help="the wafer, in the maxilla file's frame and units (default out/wafer/wafer.stl; wafer.json and "
+                         "wafer.png beside it)")
+    wf.add_argument("--no-hold", action="store_true", help="skip the holding proof in MuJoCo")
+    wf.add_argument("--no-picture", action="store_true", help="skip the picture (no GL needed)")
+    wf.add_argument("--starts", type=int, default=64, help="with --search: starting poses (default 64)")
+    wf.add_argument("--seed", type=int, default=0, help="with --search")
+    wf.add_argument("--threads", type=int, default=None, help="with --search: rollout threads (default: CPU count)")
+    wf.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _add_pair_options(wf, files=True)
+    wf.set_defaults(func=_cmd_wafer)
 
 
 def _add_bench(sub) -> None:
@@ -421,7 +457,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 "`mjist build`'s, which are in the mesh's own units; angles in degrees.")
     p.add_argument("--version", action="version", version=f"mjist {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True)
-    for add in (_add_build, _add_info, _add_scene, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_cohort, _add_bench):
+    for add in (_add_build, _add_info, _add_scene, _add_demo, _add_render, _add_view, _add_haptic, _add_occlusion, _add_wafer, _add_cohort,
+                _add_bench):
         add(sub)
     return p
 

@@ -2,7 +2,7 @@
 
 Both take a patient and hand back its finished result; the runner does not know which it has.
 On Ray a patient is a small graph: ``prepare`` → two ``tree`` tasks (one per jaw, in parallel)
-→ ``search``, each task one CPU and retried when its worker dies (``RETRIES``). Ray is
+→ ``search`` (→ ``wafer`` when asked), each task one CPU and retried when its worker dies (``RETRIES``). Ray is
 imported here only, when a Ray backend is made.
 """
 from __future__ import annotations
@@ -22,7 +22,8 @@ def run_patient(patient, out_dir: str, settings: dict) -> dict:
     prep = stages.prepare(patient, out_dir, settings)
     tmx = stages.tree(prep, "maxilla", settings)
     tmd = stages.tree(prep, "mandible", settings)
-    return _combine(prep, tmx, tmd, stages.search(patient, prep, tmx, tmd, out_dir, settings))
+    res = _combine(prep, tmx, tmd, stages.search(patient, prep, tmx, tmd, out_dir, settings))
+    return stages.wafer(patient, prep, res, out_dir, settings) if settings.get("wafer") else res
 
 
 def _combine(prep, tmx, tmd, final) -> dict:
@@ -92,6 +93,11 @@ def _search_task(patient, prep, tmx, tmd, out_dir, settings):
     return _combine(prep, tmx, tmd, final)
 
 
+def _wafer_task(patient, prep, res, out_dir, settings):
+    stages.crash_point(patient.id, "wafer")
+    return stages.wafer(patient, prep, res, out_dir, settings)
+
+
 class Ray:
     """Patients as Ray task graphs on a local Ray (``workers`` CPUs) or a cluster (``address``)."""
 
@@ -118,6 +124,7 @@ class Ray:
         self._prepare = ray.remote(**opts)(_prepare_task)
         self._tree = ray.remote(**opts)(_tree_task)
         self._search = ray.remote(**opts)(_search_task)
+        self._wafer = ray.remote(**opts)(_wafer_task)
         self.out_dir, self.settings = out_dir, settings
         self._refs = {}
 
@@ -126,6 +133,8 @@ class Ray:
         tmx = self._tree.remote(patient, prep, "maxilla", self.settings)
         tmd = self._tree.remote(patient, prep, "mandible", self.settings)
         ref = self._search.remote(patient, prep, tmx, tmd, self.out_dir, self.settings)
+        if self.settings.get("wafer"):
+            ref = self._wafer.remote(patient, prep, ref, self.out_dir, self.settings)
         self._refs[ref] = patient.id
         return ref
 

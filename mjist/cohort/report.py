@@ -10,8 +10,9 @@ from pathlib import Path
 COLUMNS = ["patient", "status", "error_stage", "error", "best_score", "best_starts", "regions", "n_regions", "both_sides",
            "interocclusal_mm", "contact_fraction", "settled", "ambiguous", "coal_gap_mm", "closest_maxilla_mm", "closest_mandible_mm", "contact_area_maxilla_mm2",
            "contact_area_mandible_mm2", "error_bound_mm", "midline_offset_mm", "design_max_mm", "design_rms_mm",
-           "design_rotation_deg", "within_target", "units", "up", "hinge_source", "teeth_only",
-           "prepare_s", "tree_maxilla_s", "tree_mandible_s", "search_s", "contact_map_s", "work_s"]
+           "design_rotation_deg", "within_target", "wafer_ok", "wafer_opening_deg", "wafer_min_thickness_mm",
+           "wafer_tip_gap_max_mm", "wafer_hold_max_mm", "units", "up", "hinge_source", "teeth_only",
+           "prepare_s", "tree_maxilla_s", "tree_mandible_s", "search_s", "contact_map_s", "wafer_s", "work_s"]
 TIME_COLUMNS = [c for c in COLUMNS if c.endswith("_s")]
 
 

@@ -20,8 +20,9 @@ from . import backends, report, stages, synthetic
 from .manifest import Patient, discover, patient_key
 
 RESULT = "result.json"
-DEFAULTS = {"max_error": 3e-4, "starts": 64, "seconds": 0.4, "seed": 0, "threads": 1, "picture": True, "cache": None}
-KEYED = ("max_error", "starts", "seconds", "seed")  # settings that change a patient's results
+DEFAULTS = {"max_error": 3e-4, "starts": 64, "seconds": 0.4, "seed": 0, "threads": 1, "picture": True, "cache": None,
+            "wafer": False}
+KEYED = ("max_error", "starts", "seconds", "seed", "wafer")  # settings that change a patient's results
 
 
 def _write_json(path: Path, obj) -> None:
@@ -78,7 +79,8 @@ def run(input=None, out="out/cohort", *, synthetic_n: int = 0, seed: int = 0, sp
         Run failed patients again (a rerun otherwise keeps their error rows).
     **settings
         ``max_error`` (m), ``starts``, ``seconds``, ``seed`` of the search, ``threads`` per search,
-        ``picture``, ``cache`` (the tree cache folder; on a cluster, a shared one).
+        ``picture``, ``cache`` (the tree cache folder; on a cluster, a shared one), ``wafer`` (make and
+        prove a surgical wafer at each best occlusion, ``jaw.waferjob``).
 
     Returns
     -------

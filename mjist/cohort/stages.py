@@ -3,7 +3,8 @@
 ``prepare`` (load, validate, write the occlusion-search scene) → ``tree`` for the maxilla and for
 the mandible (independent: built in parallel, into the content-hashed tree cache) → ``search``
 (the occlusion search, which finds both trees in the cache, its outputs, the contact map, the
-error against a designed occlusion, the summary row). A stage never raises for a patient's
+error against a designed occlusion, the summary row) → ``wafer`` when asked (a surgical wafer at
+the best occlusion, proved). A stage never raises for a patient's
 problem: it returns ``{"status": "error", "stage": ..., "error": ...}`` and the later stages
 pass that on, so a bad patient becomes an error row and the cohort goes on.
 """
@@ -167,6 +168,34 @@ def search(patient: Patient, prep: dict, tree_maxilla: dict, tree_mandible: dict
         return _failure("search", exc)
     return {"status": "ok", "row": _row(prep, res, cmap),
             "seconds": {"search": res["total_s"], "outputs": t2 - t1, "contact_map": t3 - t2, "stage": time.perf_counter() - t0}}
+
+
+def wafer(patient: Patient, prep: dict, res: dict, out_dir: str, settings: dict) -> dict:
+    """A surgical wafer at the patient's best occlusion (``jaw.waferjob``: made, proved, written
+    as ``wafer.stl``/``.json``/``.png`` in the patient's folder); its figures join the row. A
+    wafer whose proofs fail is a figure of the row (``wafer_ok``), not an error."""
+    if res["status"] != "ok":
+        return res
+    t0 = time.perf_counter()
+    try:
+        from ..jaw import waferjob
+
+        pdir = patient_dir(out_dir, patient.id)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            w = waferjob.make(scene=prep["scene"], pose=pdir / "occlusion.json", output=pdir / "wafer.stl",
+                              picture=settings["picture"], progress=False, cache_dir=settings.get("cache"))
+    except Exception as exc:
+        f = _failure("wafer", exc)
+        return {**res, "status": "error", "stage": f["stage"], "error": f["error"], "traceback": f["traceback"]}
+    p = w["proofs"]
+    res["row"].update(wafer_ok=w["ok"], wafer_opening_deg=round(w["opening_deg"], 3),
+                      wafer_min_thickness_mm=round(w["min_thickness_mm"], 3),
+                      wafer_tip_gap_max_mm=round(max(p["seating"][k]["tip_distance_max_mm"] for k in ("maxilla", "mandible")), 4),
+                      wafer_hold_max_mm=round(max(r["max_drift_mm"] for r in p["holding"]["pushes"]), 4))
+    res["times"]["wafer_s"] = time.perf_counter() - t0
+    res["times"]["work_s"] += res["times"]["wafer_s"]
+    return res
 
 
 def _row(prep: dict, res: dict, cmap) -> dict:

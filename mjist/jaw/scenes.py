@@ -378,7 +378,8 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
     xml = writers[kind](files["maxilla"], files["mandible"], hinge_mesh, pose[:3, 3],
                         title=title, **kwargs)
     path.write_text(xml)
-    summary = {"scene": str(path), "kind": kind, "meshes": files, "hinge": np.asarray(info["hinge"]).tolist(),
+    summary = {"scene": str(path), "kind": kind, "meshes": files,
+               "given": {k: os.path.abspath(v) for k, v in info["paths"].items()}, "hinge": np.asarray(info["hinge"]).tolist(),
                "hinge_source": info["hinge_source"], "hinge_uncertainty_mm": info["hinge_uncertainty"] * 1e3,
                "occlusion_source": info["source"], "seat_uncertainty_mm": info["seat_uncertainty"] * 1e3,
                "teeth_only": info["teeth_only"],

@@ -9,29 +9,7 @@ import json
 import mujoco
 import numpy as np
 import pytest
-from conftest import load_script, shared_path
-
-
-@pytest.fixture(scope="module")
-def teeth_only(tmp_path_factory):
-    """The shared pair in its stored occlusion, in mm with +z up, cropped 9 mm either side of the
-    occlusal level (no condyles, rami or fossae)."""
-    from mjist.jaw.pair import load_pair
-
-    src = shared_path("jaw")
-    byo = load_script("scripts", "byo_jaws.py")
-    mx, md = byo._load(src / "maxilla.obj"), byo._load(src / "mandible.obj")
-    _, _, info = load_pair(src)
-    md.apply_transform(info["mandible_pose"])
-    y0 = float(info["arches"]["mandible"].origin[1])
-    S = np.eye(4)
-    S[:3, :3] = 1000.0 * byo.TO_FILE
-    folder = tmp_path_factory.mktemp("teeth_mm_z")
-    for name, m in (("maxilla", mx), ("mandible", md)):
-        c = byo._crop(m, y0 + 9e-3, y0 - 9e-3, -1.0)
-        c.apply_transform(S)
-        c.export(folder / f"{name}.stl")
-    return folder
+from conftest import shared_path
 
 
 def test_teeth_only_closure_rests_in_its_stored_occlusion(teeth_only, cache, tmp_path):

@@ -1,0 +1,296 @@
+"""``mjist wafer``: a surgical wafer made at a pair's occlusion, proved, and written in the
+maxilla file's own frame and units.
+
+The occlusion comes from the pair as stored (``occlusion.json`` of a pair folder, else where
+coal says the teeth first touch), from an ``mjist occlusion`` result (``--pose``) or from a
+fresh search (``--search``). Everything is computed in the occlusion scene's world (metres,
++z up) and turned back into the maxilla file's frame once, at the end:
+
+* ``A_x`` maps the maxilla file into the world (the orientation ``pair.json`` records, then the
+  scene's 90° turn about x); ``A_d`` maps the mandible file to its reference occlusion in the
+  world;
+* the wafer's mandible pose is ``X = open · P_c · P_ref⁻¹`` (the candidate's geom pose against
+  the reference, then the opening about the hinge), so the mandible file's vertices seat on the
+  wafer at ``mandible_transform = A_x⁻¹ · X · A_d`` in the maxilla file's frame.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import wafer as shape_mod
+from . import waferproof
+
+J4 = np.eye(4)
+J4[:3, :3] = [[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]  # jaw frame -> the scenes' world (scenepair.JAW_TO_WORLD)
+
+
+def _file_maps(meta: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """``A_x`` (maxilla file -> world) and ``A_d`` (mandible file -> world at the reference
+    occlusion) from a scene's ``pair.json``, and the maxilla file's metres per unit."""
+    o = meta["orientation"]
+    R = np.asarray(o["rotation"], float)
+    sx, sd = (float(s) for s in o["scales"])
+    Sx, Sd = np.eye(4), np.eye(4)
+    Sx[:3, :3], Sd[:3, :3] = sx * R, sd * R
+    return J4 @ Sx, J4 @ np.asarray(meta["mandible_pose"], float) @ Sd, sx
+
+
+def _apply(T, V):
+    return np.asarray(V, float) @ T[:3, :3].T + T[:3, 3]
+
+
+def _candidate_pose(jp, pose_file) -> tuple[np.ndarray, str]:
+    """The mandible geom's world pose of an ``mjist occlusion`` result's best candidate."""
+    try:
+        res = json.loads(Path(pose_file).read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--pose {pose_file}: no such file (an occlusion.json written by mjist occlusion)") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--pose {pose_file} is not JSON ({exc}): pass the occlusion.json mjist occlusion wrote") from None
+    if not res.get("candidates"):
+        raise ValueError(f"--pose {pose_file} has no candidates: the search found no occlusion; rerun it (mjist occlusion) "
+                         "or use --search")
+    ref = np.asarray(res.get("reference_pos", [np.nan] * 3), float)
+    hinge = np.asarray(res.get("hinge", [np.nan] * 3), float)
+    if not (np.allclose(ref, jp.reference_pos, atol=1e-6) and np.allclose(hinge, jp.hinge, atol=1e-6)):
+        raise ValueError(f"--pose {pose_file} was made for another pair or scene (its reference occlusion or hinge differs): "
+                         "run mjist occlusion on this pair with the same options, or use --search")
+    best = res["candidates"][0]
+    return jp.pose(best["pos"], best["quat"]), f"{pose_file} (candidate #1)"
+
+
+def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool = False, opening_deg=None,
+         clearance_mm: float = 0.1, thickness_mm: float = 1.5, pair: dict | None = None, hold: bool = True,
+         picture: bool = True, starts: int = 64, seed: int = 0, threads=None, progress: bool = True, cache_dir=None,
+         scene=None) -> dict:
+    """Make, prove and write a wafer for the jaw pair in ``folder`` (default the bundled pair).
+
+    Parameters
+    ----------
+    scene : path, optional
+        The pair's occlusion-search scene with its ``pair.json`` (``scenes.pair_scene``), when
+        it exists already (a cohort's patient); else it is written beside ``output``.
+    pose : path, optional
+        An ``occlusion.json`` from ``mjist occlusion`` on the same pair: its best candidate.
+    search : bool
+        Search the occlusion first (``occlusion.search``; ``starts``, ``seed``, ``threads``).
+        Without ``pose`` or ``search`` the pair's own occlusion is used.
+    opening_deg : float, optional
+        The mandible's opening about the hinge; default the smallest that leaves ``thickness_mm``.
+    clearance_mm, thickness_mm : float
+        Gap between each arch and its imprint; the wafer's minimum thickness.
+    pair : dict, optional
+        ``load_pair`` options (units, up, hinge, repair, max_deviation_mm, maxilla, mandible).
+    hold : bool
+        Run the holding proof in MuJoCo.
+
+    Returns
+    -------
+    dict
+        What ``wafer.json`` holds: inputs, opening, ``mandible_transform``, volume, bounding
+        box, minimum thickness, the three proofs, timings and the files written.
+    """
+
+    from ..mujoco.attach import load_model
+    from .occlusion import search as occlusion_search
+    from .scenepair import HINGE_AXIS, resolve
+    from .scenes import pair_scene
+
+    if pose is not None and search:
+        raise ValueError("pass either --pose occlusion.json or --search, not both")
+    if folder is not None and (pair or {}).get("maxilla"):
+        raise ValueError("pass either the pair's FOLDER or --maxilla FILE --mandible FILE, not both")
+    if not clearance_mm >= 0 or not thickness_mm > 0:
+        raise ValueError(f"--clearance {clearance_mm} and --thickness {thickness_mm}: the clearance must be ≥ 0 mm and the "
+                         "thickness > 0 mm")
+    t0 = time.perf_counter()
+    output = Path(output)
+    work = output.parent / f"{output.stem}_work"
+    os.makedirs(work, exist_ok=True)
+    if scene is None:
+        scene = pair_scene(folder, work, "occlusion", progress=progress, **dict(pair or {}))
+    scene = Path(scene)
+    meta = json.loads((scene.parent / "pair.json").read_text())
+    timings = {"scene_s": time.perf_counter() - t0}
+    res = None
+    t1 = time.perf_counter()
+    if search:
+        res = occlusion_search(scene, starts=starts, seed=seed, threads=threads, progress=progress, cache_dir=cache_dir)
+        model, handle, jp = res["_model"], res["_handle"], res["_pair"]
+    else:
+        model, handle = load_model(scene, progress=progress, cache_dir=cache_dir)
+        jp = resolve(model, handle)
+    handle.detach()
+    timings["occlusion_s" if search else "trees_s"] = time.perf_counter() - t1
+    if search:
+        if not res["candidates"]:
+            raise ValueError("the search found no occlusion (no start settled): check the pair (mjist occlusion) or pass --pose")
+        best = res["candidates"][0]
+        Pc, source = jp.pose(best["pos"], best["quat"]), "search (candidate #1)"
+    elif pose is not None:
+        Pc, source = _candidate_pose(jp, pose)
+    else:
+        Pc, source = jp.reference, f"the pair's occlusion ({meta['occlusion_source']})"
+
+    Vx, Fx = jp.maxilla
+    Vd, Fd = jp.mandible
+    Wx = _apply(jp.maxilla_pose, Vx)
+    Wd = _apply(Pc, Vd)
+    fx = jp.frames["maxilla"]
+    t2 = time.perf_counter()
+    w = shape_mod.shape((Wx, Fx), (Wd, Fd), fx.up, fx.anterior, jp.hinge, HINGE_AXIS, clearance=clearance_mm * 1e-3,
+                        thickness=thickness_mm * 1e-3, opening_deg=opening_deg)
+    timings["shape_s"] = time.perf_counter() - t2
+    X = w.mandible_pose @ Pc @ np.linalg.inv(jp.reference)  # world: reference occlusion -> seated on the wafer
+    A_x, A_d, sx = _file_maps(meta)
+    to_file = np.linalg.inv(A_x)
+    M = to_file @ X @ A_d
+    V_file = _apply(to_file, w.vertices)
+
+    # proofs
+    t3 = time.perf_counter()
+    proofs = {"printable": waferproof.printable(w.vertices, w.faces, w.thickness, fx.up)}
+    timings["printable_s"] = time.perf_counter() - t3
+    t4 = time.perf_counter()
+    from ..geometry.mesh import read_surface
+
+    stored = {k: read_surface(meta_paths(meta)[k]) for k in ("maxilla", "mandible")}
+    mx = (np.asarray(stored["maxilla"].vertices) * sx, stored["maxilla"].faces)
+    md = (_apply(M, stored["mandible"].vertices) * sx, stored["mandible"].faces)
+    tips = {k: _apply(to_file, v) * sx for k, v in w.cusps.items()}
+    proofs["seating"] = waferproof.seating(mx, md, (V_file * sx, w.faces), w.clearance, tips)
+    timings["seating_s"] = time.perf_counter() - t4
+
+    import trimesh
+
+    world_file = work / "wafer.world.obj"
+    trimesh.Trimesh(w.vertices, w.faces, process=False).export(world_file, digits=17)
+    if hold:
+        t5 = time.perf_counter()
+        centre = 0.5 * (w.vertices.min(axis=0) + w.vertices.max(axis=0))
+        planned = jp.body(X @ jp.reference)
+        proofs["holding"] = waferproof.holding(scene, world_file, planned, w.cusps["mandible"], centre,
+                                               {"up": fx.up, "forward": fx.anterior, "left": fx.left},
+                                               cache_dir=cache_dir, progress=progress)
+        timings["holding_s"] = time.perf_counter() - t5
+
+    os.makedirs(output.parent, exist_ok=True)
+    trimesh.Trimesh(V_file, w.faces, process=False).export(output)
+    lo, hi = V_file.min(axis=0), V_file.max(axis=0)
+    unit = "m" if sx == 1.0 else "mm" if sx == 1e-3 else f"{sx:g} m"
+    out = {
+        "wafer": str(output), "units": unit, "frame": "the maxilla file's own coordinates",
+        "inputs": {"maxilla": meta_paths(meta)["maxilla"], "mandible": meta_paths(meta)["mandible"],
+                   "occlusion": source, "clearance_mm": clearance_mm, "thickness_mm": thickness_mm,
+                   "opening": "given" if opening_deg is not None else "smallest", "grid_mm": w.grid * 1e3,
+                   "imprint_mm": shape_mod.IMPRINT * 1e3, "rim_mm": shape_mod.RIM * 1e3},
+        "opening_deg": w.opening_deg, "arch_gap_mm": w.arch_gap * 1e3,
+        "mandible_transform": M.tolist(),
+        "volume_mm3": proofs["printable"]["volume_mm3"],
+        "bounding_box": {"min": lo.tolist(), "max": hi.tolist()},
+        "min_thickness_mm": proofs["printable"]["min_thickness_mm"],
+        "hinge_source": meta.get("hinge_source"), "hinge_uncertainty_mm": meta.get("hinge_uncertainty_mm"),
+        "proofs": proofs,
+        "ok": all(p["ok"] for p in proofs.values()),
+    }
+    if res is not None:
+        c = res["candidates"][0]
+        out["search"] = {"interocclusal_mm": c["interocclusal_mm"], "ambiguous": res["confidence"].get("ambiguous"),
+                         "error_vs_reference_mm": c["error"]["max_mm"], "starts": res["starts"]}
+    files = [str(output)]
+    if picture:
+        try:
+            files.append(render(scene, world_file, X @ jp.reference, output.with_suffix(".png"), fx))
+        except Exception as exc:  # no GL: the proofs still stand
+            print(f"picture skipped ({type(exc).__name__}: {exc}); set MUJOCO_GL=egl or osmesa")
+    timings["total_s"] = time.perf_counter() - t0
+    out["timings"] = timings
+    out["files"] = files + [str(output.with_suffix(".json"))]
+    output.with_suffix(".json").write_text(json.dumps(out, indent=1))
+    return out
+
+
+def meta_paths(meta: dict) -> dict:
+    """The pair's mesh files as the user gave them (``pair.json``)."""
+    return meta.get("given") or meta["meshes"]
+
+
+def render(scene, wafer_file, mandible_pose, out, frame) -> str:
+    """The wafer on the maxilla from below (occlusal view) and from the side, the mandible
+    faded in the side view."""
+    import matplotlib
+    import mujoco
+
+    spec = mujoco.MjSpec.from_file(str(scene))
+    spec.add_mesh(name="wafer", file=str(wafer_file))
+    spec.worldbody.add_geom(name="wafer", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="wafer", rgba=[0.35, 0.6, 0.95, 1.0],
+                            contype=0, conaffinity=0)
+    model = spec.compile()
+    d = mujoco.MjData(model)
+    g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "mandible")
+    gw = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "wafer")
+    mujoco.mj_forward(model, d)
+    # place the mandible's body so that its geom stands at the seated pose
+    from scipy.spatial.transform import Rotation
+
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_quat(model.geom_quat[g][[1, 2, 3, 0]]).as_matrix()
+    G[:3, 3] = model.geom_pos[g]
+    B = np.asarray(mandible_pose) @ np.linalg.inv(G)
+    x, y, z, w_ = Rotation.from_matrix(B[:3, :3]).as_quat()
+    d.qpos[:3], d.qpos[3:7] = B[:3, 3], [w_, x, y, z]
+    mujoco.mj_forward(model, d)
+    centre = d.geom_xpos[gw].copy()
+    views = []
+    r = mujoco.Renderer(model, 600, 700)
+    try:
+        for alpha, az, el in ((0.0, 90.0, 89.0), (0.35, 180.0, 0.0)):
+            model.geom_rgba[g, 3] = alpha
+            cam = mujoco.MjvCamera()
+            cam.lookat[:] = centre
+            cam.distance = 0.13
+            cam.azimuth, cam.elevation = az, el
+            r.update_scene(d, camera=cam)
+            views.append(r.render())
+    finally:
+        r.close()
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.imsave(out, np.concatenate(views, axis=1))
+    return str(out)
+
+
+def main(folder=None, output="out/wafer/wafer.stl", progress=True, **kwargs) -> int:
+    res = make(folder, output=output, progress=progress, **kwargs)
+    p = res["proofs"]
+    pr, se = p["printable"], p["seating"]
+    print(f"wafer         {res['wafer']} ({res['units']}, {res['frame']}): {pr['faces']} faces, "
+          f"{res['volume_mm3']:.0f} mm³, opened {res['opening_deg']:.2f}° about the hinge ({res['hinge_source']}), "
+          f"occlusion: {res['inputs']['occlusion']}")
+    print(f"printable     {'PASS' if pr['ok'] else 'FAIL'}: watertight {pr['watertight']}, {pr['shells']} shell(s), "
+          f"{'embedded' if pr['winding']['ok'] else str(pr['winding']['faces_not_0_1']) + ' faces beside a crossing'}, "
+          f"minimum thickness {pr['min_thickness_mm']:.3f} mm (between the faces {pr['between_faces_mm']:.3f}, rim "
+          f"{pr['rim_height_mm']:.3f}; asked {res['inputs']['thickness_mm']:g})")
+    for k in ("maxilla", "mandible"):
+        s = se[k]
+        print(f"seating       {'PASS' if s['ok'] else 'FAIL'} {k}: coal distance {s['coal_distance_mm']:.4f} mm, deepest "
+              f"overlap {s['penetration_mm']:.4f} mm (≤ {waferproof.PENETRATION_MM}), {s['cusp_tips']} cusp tips "
+              f"{s['tip_distance_median_mm']:.3f} mm median / {s['tip_distance_max_mm']:.3f} mm max from the wafer "
+              f"(clearance {res['inputs']['clearance_mm']:g} + {waferproof.TIP_SLACK_MM})")
+    if "holding" in p:
+        h = p["holding"]
+        pushes = ", ".join(f"{r['push']} {r['max_drift_mm']:.3f} mm/{r['max_rotation_deg']:.2f}° (back to "
+                           f"{r['after_mm']:.3f} mm)" for r in h["pushes"])
+        print(f"holding       {'PASS' if h['ok'] else 'FAIL'}: closed with {h['closing_force_n']:g} N, "
+              f"{h['seated_drift_mm']:.3f} mm / {h['seated_rotation_deg']:.2f}° from the plan; {h['push_n']:g} N pushes: "
+              f"{pushes} (limits {waferproof.HOLD_MM} mm / {waferproof.HOLD_DEG}°)")
+    print(f"time          {res['timings']['total_s']:.1f} s")
+    for f in res["files"]:
+        print(f"written       {f}")
+    return 0 if res["ok"] else 2
