@@ -6,7 +6,7 @@ against coal (``bench_query``), the seed paper's Figs. 6-9 with backtracking / m
 speedups in and out of contact (``bench_paper``), scaling with mesh size 10k → 200k
 vertices (``bench_scaling``), MuJoCo step time against native hull / mesh-SDF / CoACD
 (``bench_mujoco``), a jaw pushed into occlusion on a slide (``bench_slide``), the haptic loop (``bench_haptic``), the occlusion search
-(``bench_occlusion``) and cohorts on Ray (``bench_cohort``). Then writes into the output
+(``bench_occlusion``), cohorts on Ray (``bench_cohort``) and surgical wafers (``bench_wafer``). Then writes into the output
 folder ``BENCHMARKS.generated.md`` (the exact command, machine, versions, wall time per stage and every stage's table) and
 ``pareto.png``: run time against error for the IST at each ε against coal's exact distance
 (queries) and for each MuJoCo contact mode against the ground-truth occlusion (jaw closure).
@@ -39,6 +39,7 @@ STAGES = {
     "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),
     "real_occlusion": ("bench_real_occlusion.py", ["--seeds", "1", "--variants", "stored,bundled"], [], "prefix"),
     "cohort": ("bench_cohort.py", ["--patients", "2", "--spacing", "1.0", "--starts", "16", "--max-error", "0.001"], [], "prefix"),
+    "wafer": ("bench_wafer.py", ["--variants", "bundled"], [], "dir"),
 }
 
 
@@ -77,6 +78,10 @@ NOTES = {
                "workers, each run from an empty tree cache: patients per minute, the median time per stage, whether "
                "cohort.csv agrees across worker counts, each search's distance from its patient's design, and the "
                "time for 1,000 patients on k such machines."),
+    "wafer": ("Surgical wafers", "`mjist wafer FOLDER --search` on the bundled pair and the shared CBCT pair (as "
+              "stored, cropped to its teeth in mm/+z, refined to 340 k vertices), with an empty and a filled tree "
+              "cache: time per step, the searched occlusion against the stored one, the opening, the minimum "
+              "thickness, the cusp tips' distance to the wafer and the holding proof's drifts."),
 }
 
 

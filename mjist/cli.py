@@ -443,7 +443,8 @@ def _add_wafer(sub) -> None:
 def _add_bench(sub) -> None:
     bn = sub.add_parser("bench", help="run the benchmark suite; write BENCHMARKS.generated.md and pareto.png")
     bn.add_argument("--quick", action="store_true", help="small sizes, under 5 minutes")
-    bn.add_argument("--only", help="comma-separated stages: build, query, paper, scaling, mujoco, haptic, occlusion")
+    bn.add_argument("--only", help="comma-separated stages: build, query, paper, scaling, mujoco, slide, haptic, occlusion, "
+                                   "real_occlusion, cohort, wafer")
     bn.add_argument("--out-dir", default="out/bench")
     bn.set_defaults(func=_cmd_bench)
 

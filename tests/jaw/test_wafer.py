@@ -90,10 +90,16 @@ def _check_seating(maxilla, mandible, wafer, up, clearance):
         assert np.ptp(P @ up) > 10 * clearance  # the tips' heights differ by over a millimetre
 
 
-def _hold(files, mandible_transform, scale, up, forward, left, cache):
+def _hold(files, mandible_transform, scale, up, forward, left, cache, whole_mandible=False):
     """The mandible (its file at ``mandible_transform``) closed onto the wafer with 50 N and pushed
     with 20 N each way, in a scene of the three files made here (slides and a ball joint damped as
-    soft tissue): the largest drift of its teeth from the planned pose (mm)."""
+    soft tissue): the largest drift of its teeth from the planned pose (mm). ``whole_mandible``:
+    a teeth-only file gets a whole mandible's mass (110 g) at its middle."""
+    body = 'density="1900"'
+    if whole_mandible:
+        c = _read(files["mandible"], scale).bounds.mean(axis=0)
+        body = f'mass="0" density="0"/>\n      <inertial pos="{c[0]} {c[1]} {c[2]}" mass="0.11" diaginertia="8e-5 1.6e-4 1.3e-4"'
+
     xml = f"""<mujoco>
   <option timestep="{waferproof.TIMESTEP}" gravity="0 0 0"/>
   <default><geom solref="{waferproof.SOLREF[0]} {waferproof.SOLREF[1]}" friction="0.1"/></default>
@@ -108,7 +114,7 @@ def _hold(files, mandible_transform, scale, up, forward, left, cache):
     <body name="mandible">
       <joint type="slide" axis="1 0 0" damping="3"/><joint type="slide" axis="0 1 0" damping="3"/>
       <joint type="slide" axis="0 0 1" damping="3"/><joint type="ball" damping="0.003"/>
-      <geom name="mandible" type="mesh" mesh="mandible" density="1900"/>
+      <geom name="mandible" type="mesh" mesh="mandible" {body}/>
     </body>
   </worldbody>
 </mujoco>"""
@@ -165,6 +171,7 @@ def bundled(tmp_path_factory, cache):
     return out, res
 
 
+@pytest.mark.slow
 def test_bundled_wafer_prints_seats_and_holds(bundled, cache):
     out, res = bundled
     meta = json.loads(out.with_suffix(".json").read_text())
@@ -240,13 +247,14 @@ def test_cli_names_open_meshes_and_conflicting_sources(tmp_path, capsys):
         main(["wafer", "--pose", "x.json", "--search"])
 
 
-def test_real_teeth_in_mm_z_get_a_wafer_in_their_frame(teeth_only, tmp_path, cache):
+def test_real_teeth_in_mm_z_get_a_wafer_that_prints_seats_and_holds(teeth_only, tmp_path, cache):
     """The stored occlusion of the real pair, brought as mm/+z teeth: the wafer comes out in mm
-    with +z up, lies between the files as they are, prints and seats."""
+    with +z up, lies between the files as they are, prints, seats, and holds the mandible in a
+    scene made here of the three files."""
     out = tmp_path / "wafer.stl"
-    waferjob.make(teeth_only, output=out, hold=False, picture=False, progress=False, cache_dir=cache)
+    res = waferjob.make(teeth_only, output=out, picture=False, progress=False, cache_dir=cache)
     meta = json.loads(out.with_suffix(".json").read_text())
-    assert meta["units"] == "mm"
+    assert meta["units"] == "mm" and res["proofs"]["holding"]["pushes"]
     up = np.array([0.0, 0.0, 1.0])
     wafer = _read(out)
     _check_printable(wafer, up, THICKNESS)
@@ -258,3 +266,10 @@ def test_real_teeth_in_mm_z_get_a_wafer_in_their_frame(teeth_only, tmp_path, cac
     z = wafer.vertices[:, 2]
     assert mandible.vertices[:, 2].max() > z.min() and maxilla.vertices[:, 2].min() < z.max()
     assert 1.0 < meta["opening_deg"] < 8.0
+    obj = out.with_suffix(".obj")  # MuJoCo's STL reader takes at most 200 k faces
+    wafer.export(obj)
+    # the converted files: x left, y posterior, z up
+    drift = _hold({"maxilla": teeth_only / "maxilla.stl", "mandible": teeth_only / "mandible.stl", "wafer": obj},
+                  meta["mandible_transform"], 1e-3, up, np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0]), cache,
+                  whole_mandible=True)
+    assert 0.5 * CLEARANCE <= drift <= waferproof.HOLD_MM, drift  # closes through the clearance, then holds
