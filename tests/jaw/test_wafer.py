@@ -252,9 +252,9 @@ def test_real_teeth_in_mm_z_get_a_wafer_that_prints_seats_and_holds(teeth_only, 
     with +z up, lies between the files as they are, prints, seats, and holds the mandible in a
     scene made here of the three files."""
     out = tmp_path / "wafer.stl"
-    res = waferjob.make(teeth_only, output=out, picture=False, progress=False, cache_dir=cache)
+    waferjob.make(teeth_only, output=out, hold=False, picture=False, progress=False, cache_dir=cache)  # held below
     meta = json.loads(out.with_suffix(".json").read_text())
-    assert meta["units"] == "mm" and res["proofs"]["holding"]["pushes"]
+    assert meta["units"] == "mm"
     up = np.array([0.0, 0.0, 1.0])
     wafer = _read(out)
     _check_printable(wafer, up, THICKNESS)
