@@ -469,6 +469,63 @@ def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol
     return n, amb
 
 
+@njit(cache=True, parallel=True)
+def first_hits(O, d, V, F, lo, hi, left, right, start, count, order):
+    """How far each ray ``O[i] + t d`` (t ≥ 0, one direction ``d`` for all) runs before it meets
+    a triangle of ``(V, F)`` (Möller–Trumbore, edges and corners count as hits; inf: none)."""
+    n = O.shape[0]
+    out = np.empty(n)
+    inv = np.empty(3)
+    for k in range(3):
+        inv[k] = 1.0 / d[k] if d[k] != 0.0 else 1e300
+    dx, dy, dz = d[0], d[1], d[2]
+    for r in prange(n):
+        stack = np.empty(STACK, np.int64)
+        o = O[r]
+        ox, oy, oz = o[0], o[1], o[2]
+        best = np.inf
+        stack[0] = 0
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            node = stack[sp]
+            if not _ray_box(o, inv, lo, hi, node):
+                continue
+            if left[node] >= 0:
+                stack[sp] = left[node]
+                stack[sp + 1] = right[node]
+                sp += 2
+                continue
+            for i in range(start[node], start[node] + count[node]):
+                f = order[i]
+                a = F[f, 0]
+                ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
+                e1x, e1y, e1z = V[F[f, 1], 0] - ax, V[F[f, 1], 1] - ay, V[F[f, 1], 2] - az
+                e2x, e2y, e2z = V[F[f, 2], 0] - ax, V[F[f, 2], 1] - ay, V[F[f, 2], 2] - az
+                pvx = dy * e2z - dz * e2y
+                pvy = dz * e2x - dx * e2z
+                pvz = dx * e2y - dy * e2x
+                det = e1x * pvx + e1y * pvy + e1z * pvz
+                if det == 0.0:
+                    continue
+                inv_det = 1.0 / det
+                tx, ty, tz = ox - ax, oy - ay, oz - az
+                u = (tx * pvx + ty * pvy + tz * pvz) * inv_det
+                if u < 0.0 or u > 1.0:
+                    continue
+                qx = ty * e1z - tz * e1y
+                qy = tz * e1x - tx * e1z
+                qz = tx * e1y - ty * e1x
+                v = (dx * qx + dy * qy + dz * qz) * inv_det
+                if v < 0.0 or u + v > 1.0:
+                    continue
+                t = (e2x * qx + e2y * qy + e2z * qz) * inv_det
+                if 0.0 <= t < best:
+                    best = t
+        out[r] = best
+    return out
+
+
 @njit(cache=True)
 def inside(p, V, F, lo, hi, left, right, start, count, order, stack, dirs):
     """Inside test by the ray-cast winding number, nonzero rule (shells overlapping count as a
@@ -504,13 +561,14 @@ def inside_near(p, qx, qy, qz, tf, feature, side, V, F, lo, hi, left, right, sta
 
 
 @njit(cache=True, parallel=True)
-def unsigned_distance(P, V, F, lo, hi, left, right, start, count, order):
-    """Distance of points ``P (n, 3)`` to the triangles ``(V, F)`` (any mesh, closed or not)."""
+def unsigned_distance(P, V, F, lo, hi, left, right, start, count, order, bound2=np.inf):
+    """Distance of points ``P (n, 3)`` to the triangles ``(V, F)`` (any mesh, closed or not);
+    ``sqrt(bound2)`` for a point with nothing closer (the bound prunes the search)."""
     n = P.shape[0]
     out = np.empty(n)
     for i in prange(n):
         stack = np.empty(STACK, np.int64)
-        out[i] = np.sqrt(tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack)[0])
+        out[i] = np.sqrt(tri_closest(P[i], V, F, lo, hi, left, right, start, count, order, stack, bound2)[0])
     return out
 
 
@@ -655,10 +713,19 @@ class BVH:
         T = V[F]
         return cls(T.min(axis=1), T.max(axis=1))
 
-    def distance(self, P, V, F):
-        """Unsigned distance of points ``P (n, 3)`` to the triangles ``(V, F)`` this BVH was built on."""
+    def distance(self, P, V, F, within: float = np.inf):
+        """Unsigned distance of points ``P (n, 3)`` to the triangles ``(V, F)`` this BVH was built on;
+        ``within`` for the points farther than ``within`` (a bound makes far points cheap)."""
         P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 3)
-        return unsigned_distance(P, np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64), *self.arrays)
+        return unsigned_distance(P, np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64),
+                                 *self.arrays, float(within) ** 2)
+
+    def first_hits(self, O, d, V, F):
+        """How far rays from the points ``O (n, 3)`` along the direction ``d`` run before they meet
+        the triangles ``(V, F)`` this BVH was built on (inf: never)."""
+        O = np.ascontiguousarray(O, dtype=np.float64).reshape(-1, 3)
+        return first_hits(O, np.ascontiguousarray(d, dtype=np.float64), np.ascontiguousarray(V, dtype=np.float64),
+                          np.ascontiguousarray(F, dtype=np.int64), *self.arrays)
 
     def contains(self, P, V, F):
         """Whether each point ``P (n, 3)`` is inside the closed mesh ``(V, F)`` this BVH was built on."""

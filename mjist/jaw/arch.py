@@ -182,7 +182,7 @@ def occlusal_points(V, other_V, other_F, reach: float = 3e-3, up=None) -> np.nda
     cand = np.flatnonzero(((V >= lo) & (V <= hi)).all(axis=1))
     if cand.size == 0:
         return V[:0]
-    d = BVH.of_triangles(other_V, other_F).distance(V[cand], other_V, other_F)
+    d = BVH.of_triangles(other_V, other_F).distance(V[cand], other_V, other_F, within=reach)
     keep = d < reach
     P, d = V[cand[keep]], d[keep]
     if up is None or len(P) == 0:

@@ -34,3 +34,21 @@ def coal_collides(bvh_a, pose_a, bvh_b, pose_b, tol: float | None = None) -> boo
     res = coal.CollisionResult()
     coal.collide(bvh_a, coal_transform(pose_a), bvh_b, coal_transform(pose_b), req, res)
     return res.isCollision()
+
+
+def near_faces(a, b, move: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which faces of meshes ``a`` and ``b`` (each ``(V, F)``, one frame) can meet while one moves
+    by at most ``move`` (m, any point): those within ``move`` of the other mesh, plus their own
+    size. coal's collision test on two surfaces that lie close over a large area (arches in
+    occlusion) costs seconds at 300 k vertices; on these faces alone it costs milliseconds,
+    with the same answer for every pose within that move."""
+    from ..geometry.bvh import BVH
+
+    keep = []
+    for (W, F), (Wo, Fo) in ((a, b), (b, a)):
+        W, Wo = np.asarray(W, float), np.asarray(Wo, float)
+        C = W[F].mean(axis=1)
+        size = np.linalg.norm(W[F] - C[:, None, :], axis=2).max(axis=1)
+        d = BVH.of_triangles(Wo, Fo).distance(C, Wo, Fo, within=move + float(size.max()))
+        keep.append(d <= move + size)
+    return keep[0], keep[1]

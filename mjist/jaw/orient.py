@@ -30,6 +30,10 @@ AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-
 UNIT_RANGES = {"m": (0.015, 0.3), "mm": (15.0, 300.0)}
 PROBE = 2e-3  # m: how far the mandible moves along each axis to find which way opens the pair
 REACH = 0.01  # m: the jaws must come into contact within this distance along the up axis
+# touch_offset's tests within this many tolerances of the vertices' touch use only the faces that
+# can meet there (milliseconds instead of seconds on dense scans); a pair whose edges meet
+# farther before its vertices do falls back to the whole meshes
+NEAR_STEPS = 64
 
 
 @dataclass
@@ -170,8 +174,15 @@ def detect_up(bvh_maxilla, bvh_mandible, up="auto") -> tuple[str, dict]:
     return best, evidence
 
 
-def touch_offset(bvh_maxilla, bvh_mandible, up, reach: float = REACH, tol: float = 1e-6) -> float:
-    """Offset of the mandible along ``up`` (m, file axes, metres) at which the jaws just touch.
+def touch_offset(bvh_maxilla, bvh_mandible, up, reach: float = REACH, tol: float = 1e-6, meshes=None) -> float:
+    """Offset of the mandible along ``up`` (m, file axes, metres) at which the jaws just touch:
+    the largest offset known apart, within ``tol`` of touching (bisection on coal's collision test).
+
+    ``meshes``: ``((V_maxilla, F_maxilla), (V_mandible, F_mandible))`` in the coal BVHs' frame. With
+    them, rays along ``up`` from every vertex to the other jaw give where a vertex first meets the
+    other surface, and the bisection starts within a few µm of it (an edge meeting an edge first
+    is found by the bisection all the same): a few collision tests instead of twenty, which on
+    dense scans cost seconds each.
 
     Raises ``ValueError`` when they do not meet within ``reach`` (two arches that never face
     each other)."""
@@ -189,6 +200,8 @@ def touch_offset(bvh_maxilla, bvh_mandible, up, reach: float = REACH, tol: float
                 f"the jaws do not meet within {reach * 1e3:g} mm of the mandible moving up: the two arches do not face "
                 "each other (not a maxilla and a mandible of one patient, not in occlusion, or up is wrong); pass "
                 "up=... (--up) or place the jaws in occlusion")
+    if meshes is not None:
+        a, b = _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a, b, tol)
     while abs(a - b) > tol:
         m = 0.5 * (a + b)
         if _collides(bvh_maxilla, bvh_mandible, m * u):
@@ -196,6 +209,40 @@ def touch_offset(bvh_maxilla, bvh_mandible, up, reach: float = REACH, tol: float
         else:
             b = m
     return b
+
+
+def _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a: float, b: float, tol: float) -> tuple[float, float]:
+    """``touch_offset``'s bracket (touching ``a``, apart ``b``) narrowed around the offset where a
+    vertex of one jaw first meets the other (rays along ``u`` from the apart pose ``b``), and
+    bisected to ``tol`` there."""
+    from ..geometry.bvh import BVH
+    from .exact import coal_bvh, near_faces
+
+    (Vx, Fx), (Vd, Fd) = ((np.asarray(V, float), np.asarray(F)) for V, F in meshes)
+    up_hits = BVH.of_triangles(Vx, Fx).first_hits(Vd + b * u, u, Vx, Fx)  # mandible vertices rising into the maxilla
+    down_hits = BVH.of_triangles(Vd, Fd).first_hits(Vx - b * u, -u, Vd, Fd)  # maxilla vertices, the mandible's view
+    t = b + min(float(up_hits.min(initial=np.inf)), float(down_hits.min(initial=np.inf)))
+    if not b < t < a:
+        return a, b
+    a = t  # a vertex lies on the other surface: touching (coal counts meshes within about 1 µm as touching)
+    # the tests near t see only the faces that can meet within NEAR_STEPS of it
+    near = near_faces((Vx, Fx), (Vd + t * u, Fd), NEAR_STEPS * tol)
+    near = (coal_bvh(Vx, Fx[near[0]]), coal_bvh(Vd, Fd[near[1]])) if near[0].any() and near[1].any() else None
+    step = 2.0 * tol
+    while t - step > b:  # an edge may meet an edge before any vertex meets a face: step back until apart
+        bx, bd = near if near is not None and step <= NEAR_STEPS * tol else (bvh_maxilla, bvh_mandible)
+        if not _collides(bx, bd, (t - step) * u):
+            b = t - step
+            while a - b > tol:  # the bisection, on the same faces
+                m = 0.5 * (a + b)
+                if _collides(bx, bd, m * u):
+                    a = m
+                else:
+                    b = m
+            return a, b
+        a = t - step
+        step *= 16.0
+    return a, b
 
 
 def hinge_touch(bvh_maxilla, bvh_mandible, hinge, reach_deg: float = 25.0, tol_deg: float = 1e-4) -> float:

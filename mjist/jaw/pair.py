@@ -212,7 +212,7 @@ def _orientation(mx, md, units, up, notes: list):
     bx, bd = coal_bvh(Vx, mx.faces), coal_bvh(Vd, md.faces)
     up_axis, ev_up = orient.detect_up(bx, bd, up)
     u = np.asarray(orient.AXES[up_axis])
-    touch = orient.touch_offset(bx, bd, u)
+    touch = orient.touch_offset(bx, bd, u, meshes=((Vx, mx.faces), (Vd, md.faces)))
     pts = arch.occlusal_points(Vx, Vd + touch * u, md.faces, up=u)
     fx = arch.arch_frame(pts, u)
     if fx.depth < arch.ARCH_MIN_DEPTH:  # they first meet outside the teeth (condyles in their fossae, a pair given open)

@@ -86,3 +86,32 @@ def test_pair_given_open_is_closed_about_its_condyles(tmp_path):
     assert (tmp_path / "scene" / "mandible.jaw.obj").exists() and model.nmesh == 2
     # given open, the pose says where the condyles were, not where they seat: the search samples it
     assert info["seat_uncertainty"] > 0 and json.loads((tmp_path / "scene" / "pair.json").read_text())["seat_uncertainty_mm"] > 0
+
+
+def test_touch_offset_from_vertex_rays_agrees_with_plain_bisection():
+    """The stored CBCT pair moved along +y: the touch found from rays along up through every
+    vertex (then a short bisection) is the plain bisection's within its tolerance, apart by
+    coal's test there and touching 2 µm further up."""
+    import trimesh
+
+    from mjist.jaw import orient
+    from mjist.jaw.exact import coal_bvh, coal_collides
+
+    meshes = []
+    for name in ("maxilla", "mandible"):
+        m = trimesh.load(shared_path("jaw", f"{name}.obj"), force="mesh", process=False)
+        m.merge_vertices()
+        meshes.append((np.asarray(m.vertices, float), np.asarray(m.faces)))
+    bx, bd = coal_bvh(*meshes[0]), coal_bvh(*meshes[1])
+    u = np.array([0.0, 1.0, 0.0])
+    tol = 1e-6
+    rays = orient.touch_offset(bx, bd, u, tol=tol, meshes=meshes)
+    plain = orient.touch_offset(bx, bd, u, tol=tol)
+    assert abs(rays - plain) <= 2 * tol, (rays, plain)
+
+    def at(t):
+        P = np.eye(4)
+        P[:3, 3] = t * u
+        return coal_collides(bx, np.eye(4), bd, P)
+
+    assert not at(rays) and at(rays + 2 * tol)
