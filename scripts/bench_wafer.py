@@ -87,6 +87,8 @@ def _summary(res: dict, seconds: float, cached: bool) -> dict:
         "seated_mm": h.get("seated_drift_mm"), "push_max_mm": max((r["max_drift_mm"] for r in h.get("pushes", [])), default=None),
         "push_max_deg": max((r["max_rotation_deg"] for r in h.get("pushes", [])), default=None),
         "return_max_mm": max((r["after_mm"] for r in h.get("pushes", [])), default=None),
+        "push_max_any_step_mm": max((r["max_drift_any_step_mm"] for r in h.get("pushes", [])), default=None),
+        "rattle_mm_per_step": h.get("rattle_mm_per_step"),
         "ok": res["ok"],
     }
 
@@ -129,12 +131,13 @@ def main(argv=None) -> int:
                   f"pushes ≤ {r['push_max_mm']:.3f} mm  proofs {'PASS' if r['ok'] else 'FAIL'}", flush=True)
     (out / "bench_wafer.json").write_text(json.dumps(rows, indent=1))
     lines = ["| pair | trees | time (s) | search vs stored (mm) | opening (°) | min thickness (mm) | tips from wafer, max (mm) "
-             "| seated / pushed / back (mm) | printable | seating | holding |", "|" + "---|" * 11]
+             "| seated / pushed / back (mm) | pushed, any step (mm) | printable | seating | holding |", "|" + "---|" * 12]
     for name, rs in rows.items():
         for r in rs:
             lines.append(f"| {name} | {'cached' if r['trees_cached'] else 'built'} | {r['seconds']:.0f} | "
                          f"{r['search_error_mm']:.3f} | {r['opening_deg']:.2f} | {r['min_thickness_mm']:.3f} | {r['tip_max_mm']:.3f} | "
                          f"{r['seated_mm']:.3f} / {r['push_max_mm']:.3f} / {r['return_max_mm']:.3f} | "
+                         f"{r['push_max_any_step_mm']:.3f} | "
                          f"{'pass' if r['printable'] else 'FAIL'} | {'pass' if r['seating'] else 'FAIL'} | "
                          f"{'pass' if r['holding'] else 'FAIL'} |")
     (out / "bench_wafer.md").write_text("\n".join(lines) + "\n")

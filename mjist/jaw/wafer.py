@@ -85,7 +85,8 @@ def hinge_turn(theta: float, hinge, axis) -> np.ndarray:
     return T
 
 
-def _apply(T, V):
+def apply_pose(T, V) -> np.ndarray:
+    """The points ``V (n, 3)`` moved by the 4x4 pose ``T``."""
     return np.asarray(V, float) @ T[:3, :3].T + T[:3, 3]
 
 
@@ -167,6 +168,12 @@ class _Grid:
     def world(self, U):
         return self.origin + np.asarray(U, float) @ self.B
 
+    def index(self, L):
+        """The node nearest each point of local coordinates ``L (n, 3)``: ``i, j`` and whether it is on the grid."""
+        i = np.rint((L[:, 0] - self.u0) / self.h).astype(np.int64)
+        j = np.rint((L[:, 1] - self.v0) / self.h).astype(np.int64)
+        return i, j, (i >= 0) & (i < self.shape[0]) & (j >= 0) & (j < self.shape[1])
+
     def nodes(self):
         i, j = np.meshgrid(np.arange(self.shape[0]), np.arange(self.shape[1]), indexing="ij")
         return self.u0 + i * self.h, self.v0 + j * self.h
@@ -239,9 +246,8 @@ def _outline(gap, grid) -> np.ndarray:
 def _crop(V, F, grid, inside, band):
     """Faces of ``(V, F)`` whose centroid lies over ``inside`` (grid mask) within ``band`` of w = 0."""
     C = grid.local(V[F].mean(axis=1))
-    i = np.rint((C[:, 0] - grid.u0) / grid.h).astype(np.int64)
-    j = np.rint((C[:, 1] - grid.v0) / grid.h).astype(np.int64)
-    ok = (i >= 0) & (i < grid.shape[0]) & (j >= 0) & (j < grid.shape[1]) & (np.abs(C[:, 2]) < band)
+    i, j, ok = grid.index(C)
+    ok &= np.abs(C[:, 2]) < band
     ok[ok] = inside[i[ok], j[ok]]
     return ok
 
@@ -371,17 +377,16 @@ def shape(maxilla, mandible, up, anterior, hinge, hinge_axis, *, clearance: floa
     r = 0.5 * thickness + 0.5 * grid  # the opening ball: half the thickness and half a grid step of margin
     core = _erode_mask(inside, g, r)
     top = np.minimum(Hx, _cap(Hx, inside, g, -1))
+    hi_c = _erode(np.where(inside, top, np.inf), g, r)  # the highest ball centres under the fixed upper face
     G = np.eye(4)  # world -> grid frame
     G[:3, :3], G[:3, 3] = B, -B @ origin
 
-    def fits(theta) -> tuple[bool, np.ndarray, np.ndarray]:
+    def fits(theta) -> tuple[bool, np.ndarray]:
         T = G @ hinge_turn(theta, hinge, hinge_axis) @ np.linalg.inv(G)
-        Hd = g.drop_local(_apply(T, Ld), rho, +1) - (rho - clearance)
+        Hd = g.drop_local(apply_pose(T, Ld), rho, +1) - (rho - clearance)
         bottom = np.maximum(Hd, _cap(Hd, inside, g, +1))
         lo_c = _dilate(np.where(inside, bottom, -np.inf), g, r)
-        hi_c = _erode(np.where(inside, top, np.inf), g, r)
-        ok = bool(np.all(hi_c[core] >= lo_c[core]))
-        return ok, top, bottom
+        return bool(np.all(hi_c[core] >= lo_c[core])), bottom
 
     need = 2 * r + 2 * clearance  # the ball and the clearances: coal's distance where the grid's test should pass
     if opening_deg is None:
@@ -400,15 +405,15 @@ def shape(maxilla, mandible, up, anterior, hinge, hinge_axis, *, clearance: floa
             else:
                 lo_t = mid
         theta = hi_t
-        ok, top, bottom = fits(theta)
+        ok, bottom = fits(theta)
         step = np.radians(0.05)
         while not ok and theta < np.radians(MAX_OPENING_DEG):  # the grid's ball test has the last word
             theta += step
-            ok, top, bottom = fits(theta)
+            ok, bottom = fits(theta)
         source = "smallest"
     else:
         theta = np.radians(float(opening_deg))
-        ok, top, bottom = fits(theta)
+        ok, bottom = fits(theta)
         source = "given"
     if not ok:
         raise ValueError(f"opened {np.degrees(theta):.2f}° about the hinge, the arches leave less than {thickness * 1e3:g} mm "
@@ -419,7 +424,6 @@ def shape(maxilla, mandible, up, anterior, hinge, hinge_axis, *, clearance: floa
     gap = coal_distance(bx, I4, bd, T)
     # open the solid by the ball: centres where the ball fits, then the union of the balls
     lo_c = _dilate(np.where(inside, bottom, -np.inf), g, r)
-    hi_c = _erode(np.where(inside, top, np.inf), g, r)
     centre = core & (hi_c >= lo_c) & np.isfinite(hi_c) & np.isfinite(lo_c)
     top_o = _dilate(np.where(centre, hi_c, -np.inf), g, r)
     bot_o = _erode(np.where(centre, lo_c, np.inf), g, r)
@@ -431,7 +435,7 @@ def shape(maxilla, mandible, up, anterior, hinge, hinge_axis, *, clearance: floa
     t_mesh = time.perf_counter()
     seat = _erode_mask(centre, g, TIP)  # cusps with the wafer all round them
     cusps = {"maxilla": cusp_tips(Vx, Fx, g, seat, band, -1, other=(Vd, Fd)),
-             "mandible": _apply(T, cusp_tips(Vd, Fd, g, seat, band, +1, other=(Vx, Fx)))}
+             "mandible": apply_pose(T, cusp_tips(Vd, Fd, g, seat, band, +1, other=(Vx, Fx)))}
     return WaferShape(V, F, float(np.degrees(theta)), source, T, clearance, thickness, float(gap), grid, cusps,
                       {"samples_s": t_samples - t0, "opening_s": t_open - t_samples, "mesh_s": t_mesh - t_open})
 
@@ -443,10 +447,7 @@ def _normals(V, F):
 
 def _over(grid, P, mask) -> np.ndarray:
     """Which points ``P`` (world) lie over ``mask``."""
-    L = grid.local(P)
-    i = np.rint((L[:, 0] - grid.u0) / grid.h).astype(np.int64)
-    j = np.rint((L[:, 1] - grid.v0) / grid.h).astype(np.int64)
-    ok = (i >= 0) & (i < grid.shape[0]) & (j >= 0) & (j < grid.shape[1])
+    i, j, ok = grid.index(grid.local(P))
     ok[ok] = mask[i[ok], j[ok]]
     return ok
 
@@ -498,15 +499,14 @@ def cusp_tips(V, F, grid, over, band, sign, other=None) -> np.ndarray:
         np.add.at(n, F[:, k], fn)
     facing = (n @ grid.B[2]) * sign > 0.5 * np.linalg.norm(n, axis=1)
     L = grid.local(V)
-    i = np.rint((L[:, 0] - grid.u0) / grid.h).astype(np.int64)
-    j = np.rint((L[:, 1] - grid.v0) / grid.h).astype(np.int64)
-    ok = facing & (i >= 0) & (i < grid.shape[0]) & (j >= 0) & (j < grid.shape[1]) & (np.abs(L[:, 2]) < band)
+    i, j, ok = grid.index(L)
+    ok &= facing & (np.abs(L[:, 2]) < band)
     if other is not None:
         from ..geometry.bvh import BVH
 
         k = np.flatnonzero(ok)
         Vo, Fo = other
-        ok[k] = BVH.of_triangles(Vo, Fo).distance(np.ascontiguousarray(V[k]), Vo, Fo) < REACH
+        ok[k] = BVH.of_triangles(Vo, Fo).distance(np.ascontiguousarray(V[k]), Vo, Fo, within=REACH) < REACH
     H = np.full(grid.shape, np.inf)
     np.minimum.at(H, (i[ok], j[ok]), -sign * L[ok, 2])  # the extreme (lowest for the maxilla) per node
     local = _lowest_near(H, grid, TIP)

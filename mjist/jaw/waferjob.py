@@ -24,6 +24,7 @@ import numpy as np
 
 from . import wafer as shape_mod
 from . import waferproof
+from .wafer import apply_pose
 
 J4 = np.eye(4)
 J4[:3, :3] = [[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]  # jaw frame -> the scenes' world (scenepair.JAW_TO_WORLD)
@@ -38,10 +39,6 @@ def _file_maps(meta: dict) -> tuple[np.ndarray, np.ndarray, float]:
     Sx, Sd = np.eye(4), np.eye(4)
     Sx[:3, :3], Sd[:3, :3] = sx * R, sd * R
     return J4 @ Sx, J4 @ np.asarray(meta["mandible_pose"], float) @ Sd, sx
-
-
-def _apply(T, V):
-    return np.asarray(V, float) @ T[:3, :3].T + T[:3, 3]
 
 
 def _candidate_pose(jp, pose_file) -> tuple[np.ndarray, str]:
@@ -139,8 +136,8 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
 
     Vx, Fx = jp.maxilla
     Vd, Fd = jp.mandible
-    Wx = _apply(jp.maxilla_pose, Vx)
-    Wd = _apply(Pc, Vd)
+    Wx = apply_pose(jp.maxilla_pose, Vx)
+    Wd = apply_pose(Pc, Vd)
     fx = jp.frames["maxilla"]
     t2 = time.perf_counter()
     w = shape_mod.shape((Wx, Fx), (Wd, Fd), fx.up, fx.anterior, jp.hinge, HINGE_AXIS, clearance=clearance_mm * 1e-3,
@@ -150,7 +147,7 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
     A_x, A_d, sx = _file_maps(meta)
     to_file = np.linalg.inv(A_x)
     M = to_file @ X @ A_d
-    V_file = _apply(to_file, w.vertices)
+    V_file = apply_pose(to_file, w.vertices)
 
     # proofs
     t3 = time.perf_counter()
@@ -161,8 +158,8 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
 
     stored = {k: read_surface(meta_paths(meta)[k]) for k in ("maxilla", "mandible")}
     mx = (np.asarray(stored["maxilla"].vertices) * sx, stored["maxilla"].faces)
-    md = (_apply(M, stored["mandible"].vertices) * sx, stored["mandible"].faces)
-    tips = {k: _apply(to_file, v) * sx for k, v in w.cusps.items()}
+    md = (apply_pose(M, stored["mandible"].vertices) * sx, stored["mandible"].faces)
+    tips = {k: apply_pose(to_file, v) * sx for k, v in w.cusps.items()}
     proofs["seating"] = waferproof.seating(mx, md, (V_file * sx, w.faces), w.clearance, tips)
     timings["seating_s"] = time.perf_counter() - t4
 
@@ -170,13 +167,13 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
 
     world_file = work / "wafer.world.obj"
     trimesh.Trimesh(w.vertices, w.faces, process=False).export(world_file, digits=17)
+    planned = jp.body(X @ jp.reference)  # the mandible body seated on the wafer
     if hold:
         t5 = time.perf_counter()
         centre = 0.5 * (w.vertices.min(axis=0) + w.vertices.max(axis=0))
-        planned = jp.body(X @ jp.reference)
         proofs["holding"] = waferproof.holding(scene, world_file, planned, w.cusps["mandible"], centre,
                                                {"up": fx.up, "forward": fx.anterior, "left": fx.left},
-                                               cache_dir=cache_dir, progress=progress)
+                                               cache_dir=cache_dir, progress=progress, threads=threads)
         timings["holding_s"] = time.perf_counter() - t5
 
     os.makedirs(output.parent, exist_ok=True)
@@ -205,7 +202,7 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
     files = [str(output)]
     if picture:
         try:
-            files.append(render(scene, world_file, X @ jp.reference, output.with_suffix(".png"), fx))
+            files.append(render(scene, world_file, planned, output.with_suffix(".png")))
         except Exception as exc:  # no GL: the proofs still stand
             print(f"picture skipped ({type(exc).__name__}: {exc}); set MUJOCO_GL=egl or osmesa")
     timings["total_s"] = time.perf_counter() - t0
@@ -220,9 +217,9 @@ def meta_paths(meta: dict) -> dict:
     return meta.get("given") or meta["meshes"]
 
 
-def render(scene, wafer_file, mandible_pose, out, frame) -> str:
+def render(scene, wafer_file, planned, out) -> str:
     """The wafer on the maxilla from below (occlusal view) and from the side, the mandible
-    faded in the side view."""
+    faded in the side view at ``planned``, its body's ``(pos, quat)`` seated on the wafer."""
     import matplotlib
     import mujoco
 
@@ -234,16 +231,7 @@ def render(scene, wafer_file, mandible_pose, out, frame) -> str:
     d = mujoco.MjData(model)
     g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "mandible")
     gw = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "wafer")
-    mujoco.mj_forward(model, d)
-    # place the mandible's body so that its geom stands at the seated pose
-    from scipy.spatial.transform import Rotation
-
-    G = np.eye(4)
-    G[:3, :3] = Rotation.from_quat(model.geom_quat[g][[1, 2, 3, 0]]).as_matrix()
-    G[:3, 3] = model.geom_pos[g]
-    B = np.asarray(mandible_pose) @ np.linalg.inv(G)
-    x, y, z, w_ = Rotation.from_matrix(B[:3, :3]).as_quat()
-    d.qpos[:3], d.qpos[3:7] = B[:3, 3], [w_, x, y, z]
+    d.qpos[:3], d.qpos[3:7] = planned
     mujoco.mj_forward(model, d)
     centre = d.geom_xpos[gw].copy()
     views = []
