@@ -20,12 +20,12 @@ import os
 import time
 from pathlib import Path
 
-import coal
 import mujoco
 import numpy as np
 
 from mjist.jaw import haptic
 from mjist.jaw import pair as jawmod
+from mjist.jaw.exact import coal_depth
 from mjist.jaw.scenes import pair_scene
 from mjist.mujoco import attach as A
 from mjist.mujoco import config
@@ -33,15 +33,6 @@ from mjist.mujoco.scene import geom_pose, geom_pose_at, mesh_of
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data" / "jaw"
-
-
-def coal_depth(ba, Pa, bb, Pb) -> float:
-    req = coal.CollisionRequest()
-    req.enable_contact = True
-    req.num_max_contacts = 1 << 20
-    res = coal.CollisionResult()
-    coal.collide(ba, jawmod.coal_transform(Pa), bb, jawmod.coal_transform(Pb), req, res)
-    return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
 
 
 def run_case(scene, law, max_error, trajectories, every, steps_cap):

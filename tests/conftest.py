@@ -82,16 +82,9 @@ def winding_numbers(points, vertices, faces):
 def coal_depth(bvh, Pa, Pb):
     """coal: deepest triangle-pair penetration of two meshes (``bvh``: their coal BVHs) at 4x4
     poses ``Pa``, ``Pb`` (0 when they do not touch)."""
-    import coal
+    from mjist.jaw.exact import coal_depth as depth
 
-    from mjist.jaw.exact import coal_transform
-
-    req = coal.CollisionRequest()
-    req.enable_contact = True
-    req.num_max_contacts = 1 << 20
-    res = coal.CollisionResult()
-    coal.collide(bvh[0], coal_transform(Pa), bvh[1], coal_transform(Pb), req, res)
-    return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
+    return depth(bvh[0], Pa, bvh[1], Pb)
 
 
 @pytest.fixture(scope="session")

@@ -36,6 +36,17 @@ def coal_collides(bvh_a, pose_a, bvh_b, pose_b, tol: float | None = None) -> boo
     return res.isCollision()
 
 
+def coal_depth(bvh_a, pose_a, bvh_b, pose_b) -> float:
+    """coal's deepest triangle-pair penetration of two meshes at their poses (0 when they do
+    not touch): the exact reference for a contact's depth."""
+    req = coal.CollisionRequest()
+    req.enable_contact = True
+    req.num_max_contacts = 1 << 20
+    res = coal.CollisionResult()
+    coal.collide(bvh_a, coal_transform(pose_a), bvh_b, coal_transform(pose_b), req, res)
+    return max([0.0] + [-c.penetration_depth for c in res.getContacts()])
+
+
 def near_faces(a, b, move: float) -> tuple[np.ndarray, np.ndarray]:
     """Which faces of meshes ``a`` and ``b`` (each ``(V, F)``, one frame) can meet while one moves
     by at most ``move`` (m, any point): those within ``move`` of the other mesh, plus their own
