@@ -255,6 +255,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     cfg = QUICK if a.quick else FULL
     out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
     avail = pairs_available()
     want = [p for p in (["bundled"] if a.quick else a.pairs.split(",")) if p in avail]
     if not want:

@@ -17,13 +17,21 @@ INSTALL = ("mjist cohort runs its patients on Ray, which is not installed: pip i
            "(or run on this machine one patient at a time with --serial)")
 
 
-def run_patient(patient, out_dir: str, settings: dict) -> dict:
-    """All stages of one patient in this process (the serial backend's unit of work)."""
+def run_patient(patient, out_dir: str, settings: dict, searched: dict | None = None) -> dict:
+    """All stages of one patient in this process (the serial backend's unit of work); with
+    ``searched`` (its finished result without a wafer) only ``prepare`` and ``wafer``."""
     prep = stages.prepare(patient, out_dir, settings)
+    if searched is not None:
+        return stages.wafer(patient, prep, searched, out_dir, settings) if prep["status"] == "ok" else _failed(prep, searched)
     tmx = stages.tree(prep, "maxilla", settings)
     tmd = stages.tree(prep, "mandible", settings)
     res = _combine(prep, tmx, tmd, stages.search(patient, prep, tmx, tmd, out_dir, settings))
     return stages.wafer(patient, prep, res, out_dir, settings) if settings.get("wafer") else res
+
+
+def _failed(prep, searched) -> dict:
+    """A finished result whose ``prepare`` failed when only its wafer was to be made."""
+    return {**searched, "status": "error", "stage": prep["stage"], "error": prep["error"], "traceback": prep.get("traceback", "")}
 
 
 def _combine(prep, tmx, tmd, final) -> dict:
@@ -59,13 +67,15 @@ class Serial:
         self.out_dir, self.settings = out_dir, settings
         self._queue = {}
 
-    def submit(self, patient):
-        self._queue[patient.id] = patient
+    def submit(self, patient, searched: dict | None = None):
+        """Queue a patient: all its stages, or with ``searched`` (its result without a wafer) its wafer alone."""
+        self._queue[patient.id] = (patient, searched)
         return patient.id
 
     def wait(self, handles, timeout: float):
         h = handles[0]
-        return [(h, run_patient(self._queue.pop(h), self.out_dir, self.settings))]
+        patient, searched = self._queue.pop(h)
+        return [(h, run_patient(patient, self.out_dir, self.settings, searched))]
 
     def map(self, fn, items):
         return [fn(*a) for a in items]
@@ -95,6 +105,8 @@ def _search_task(patient, prep, tmx, tmd, out_dir, settings):
 
 def _wafer_task(patient, prep, res, out_dir, settings):
     stages.crash_point(patient.id, "wafer")
+    if prep["status"] != "ok" and res.get("status") == "ok":  # only the wafer was to be made
+        return _failed(prep, res)
     return stages.wafer(patient, prep, res, out_dir, settings)
 
 
@@ -128,8 +140,13 @@ class Ray:
         self.out_dir, self.settings = out_dir, settings
         self._refs = {}
 
-    def submit(self, patient):
+    def submit(self, patient, searched: dict | None = None):
+        """A patient's task graph, or with ``searched`` (its result without a wafer) prepare → wafer."""
         prep = self._prepare.remote(patient, self.out_dir, self.settings)
+        if searched is not None:
+            ref = self._wafer.remote(patient, prep, searched, self.out_dir, self.settings)
+            self._refs[ref] = patient.id
+            return ref
         tmx = self._tree.remote(patient, prep, "maxilla", self.settings)
         tmd = self._tree.remote(patient, prep, "mandible", self.settings)
         ref = self._search.remote(patient, prep, tmx, tmd, self.out_dir, self.settings)

@@ -22,7 +22,9 @@ from .manifest import Patient, discover, patient_key
 RESULT = "result.json"
 DEFAULTS = {"max_error": 3e-4, "starts": 64, "seconds": 0.4, "seed": 0, "threads": 1, "picture": True, "cache": None,
             "wafer": False}
-KEYED = ("max_error", "starts", "seconds", "seed", "wafer")  # settings that change a patient's results
+# settings that change a patient's results; ``wafer`` only adds to them: a finished patient
+# without one gets its wafer alone (prepare → wafer), its search kept
+KEYED = ("max_error", "starts", "seconds", "seed")
 
 
 def _write_json(path: Path, obj) -> None:
@@ -114,12 +116,16 @@ def run(input=None, out="out/cohort", *, synthetic_n: int = 0, seed: int = 0, sp
 
 def _run(patients: list[Patient], out: Path, cfg: dict, backend, retry_failed: bool, progress: bool, t0: float) -> dict:
     keyed = {k: cfg[k] for k in KEYED}
-    results, todo, keys = {}, deque(), {}
+    results, todo, keys, wafer_only = {}, deque(), {}, {}
     for p in patients:
         keys[p.id] = patient_key(p, keyed, __version__)
         r = _load_result(stages.patient_dir(out, p.id) / RESULT)
         if r is not None and r.get("key") == keys[p.id] and (r["status"] == "ok" or not retry_failed):
-            results[p.id] = r
+            if cfg["wafer"] and r["status"] == "ok" and "wafer_ok" not in r.get("row", {}):
+                wafer_only[p.id] = r  # searched before without --wafer: its wafer alone
+                todo.append(p)
+            else:
+                results[p.id] = r
         else:
             todo.append(p)
     skipped = len(results)
@@ -136,7 +142,7 @@ def _run(patients: list[Patient], out: Path, cfg: dict, backend, retry_failed: b
         while todo or inflight:
             while todo and len(inflight) < window:
                 p = todo.popleft()
-                inflight[backend.submit(p)] = p
+                inflight[backend.submit(p, wafer_only.get(p.id))] = p
             for h, r in backend.wait(list(inflight), timeout=1.0):
                 p = inflight.pop(h)
                 r.update(patient=p.id, key=keys[p.id])

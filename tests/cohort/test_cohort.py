@@ -171,14 +171,22 @@ def test_a_cohort_survives_losing_a_node(cohort_input, cache, tmp_path):
 
 @pytest.mark.slow
 def test_a_cohort_makes_and_proves_a_wafer_per_patient(cohort_input, cache, tmp_path):
-    """``--wafer``: each good patient gets its wafer and proofs beside its search, the row their
-    figures; a rerun does nothing. (These patients' 1.5 mm facets end their cusps in sharp
+    """``--wafer`` on a searched cohort: each good patient gets its wafer and proofs beside its
+    search, which is not run again, the row their figures; a rerun does nothing. (These patients' 1.5 mm facets end their cusps in sharp
     vertices, whose imprints a 0.15 mm grid makes up to 0.05 mm deeper than the clearance:
     ``scripts/bench_wafer.py`` measures the seating on real scans, not this test.)"""
     out = tmp_path / "wafers"
+    first = run(cohort_input, out, serial=True, progress=False, cache=cache, **FAST)
+    assert (first["done"], first["failed"]) == (2, 1)
+    searched = {name: (out / "patients" / name / "occlusion.json").read_bytes() for name in GOOD}
+    before = {r["patient"]: r for r in _rows(out / "cohort.csv")}
+    # the same cohort with --wafer: the searched patients get their wafers alone
     s = run(cohort_input, out, serial=True, progress=False, cache=cache, wafer=True, **FAST)
-    assert (s["done"], s["failed"]) == (2, 1)
+    assert (s["done"], s["failed"], s["ran"], s["skipped"]) == (2, 1, 2, 1)
     rows = {r["patient"]: r for r in _rows(out / "cohort.csv")}
+    for name in GOOD:
+        assert (out / "patients" / name / "occlusion.json").read_bytes() == searched[name]  # not searched again
+        assert rows[name]["search_s"] == before[name]["search_s"] and float(rows[name]["wafer_s"]) > 0
     for name in GOOD:
         r = rows[name]
         meta = json.loads((out / "patients" / name / "wafer.json").read_text())
