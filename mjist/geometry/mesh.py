@@ -123,13 +123,24 @@ def _merge_digits(V) -> int:
     return int(np.clip(np.ceil(-np.log10(MERGE_RELATIVE * max(size, 1e-300))), 0, 300))
 
 
+DEGENERATE = 1e-14  # a face whose doubled area is at most this times the mesh's size squared has zero area
+
+
+def degenerate_faces(V, F, scale: float | None = None) -> np.ndarray:
+    """Which faces have zero area: a repeated vertex, or a doubled area of at most ``DEGENERATE``
+    times ``scale`` squared (default: the mesh's bounding-box diagonal)."""
+    V, F = np.asarray(V, float), np.asarray(F)
+    if scale is None:
+        scale = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) if len(V) else 1.0
+    tri = V[F]
+    dbl_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
+    return repeated | (dbl_area <= DEGENERATE * scale * scale)
+
+
 def _drop_degenerate(tm, scale: float, repair: bool, repairs: list) -> None:
     """Refuse zero-area faces, or remove them with ``repair``."""
-    tri = tm.vertices[tm.faces]
-    dbl_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    F = tm.faces
-    repeated = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 0] == F[:, 2])
-    degenerate = repeated | (dbl_area <= 1e-14 * scale * scale)
+    degenerate = degenerate_faces(tm.vertices, tm.faces, scale)
     if not degenerate.any():
         return
     if not repair:
@@ -248,19 +259,74 @@ def load_mesh(mesh, *, repair: bool = False, max_deviation: float | None = None)
     )
 
 
-def single_precision(V, F) -> tuple[np.ndarray, np.ndarray, int]:
+def single_precision(V, F) -> tuple[np.ndarray, np.ndarray, int, int]:
     """The mesh as a float32 reader (MuJoCo's compiler) will see it, cleaned of what that rounding
     makes: vertices that round to one float32 point become one vertex, and the zero-area faces
     this leaves are removed (each is a sliver between two such vertices, so the surface stays
-    closed). Returns ``(V, F, faces removed)``; ``V`` holds float32-exact coordinates.
+    closed); a sliver whose three corners rounding puts on one line is flipped away
+    (``_split_slivers``). Returns ``(V, F, faces removed, slivers flipped)``; ``V`` holds
+    float32-exact coordinates.
     """
     V = np.asarray(V, np.float64)
     F = np.asarray(F, np.int64)
     V32 = V.astype(np.float32)
     _, first, inverse = np.unique(V32, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.ravel()
+    removed = 0
     if len(first) == len(V):
-        return V32.astype(np.float64), F, 0
-    G = inverse[F]
-    keep = (G[:, 0] != G[:, 1]) & (G[:, 1] != G[:, 2]) & (G[:, 0] != G[:, 2])
-    return V32[first].astype(np.float64), G[keep], int((~keep).sum())
+        W = V32.astype(np.float64)
+    else:
+        G = inverse[F]
+        keep = (G[:, 0] != G[:, 1]) & (G[:, 1] != G[:, 2]) & (G[:, 0] != G[:, 2])
+        W, F, removed = V32[first].astype(np.float64), G[keep], int((~keep).sum())
+    F, flipped = _split_slivers(W, F)
+    return W, F, removed, flipped
+
+
+SLIVER_PASSES = 8  # rounds of flips at most (a flip can leave a new sliver where a neighbour is on the line too)
+
+
+def _split_slivers(V, F) -> tuple[np.ndarray, int]:
+    """Zero-area faces with three distinct corners on one line, flipped away: the face ``a b m``
+    (``m`` on the edge ``a b``) goes, and the face across ``a b``, ``b a s``, becomes ``b m s``
+    and ``m a s``. The surface stays closed and consistently wound, and keeps its face count.
+    Returns the faces and the number of flips; slivers without a neighbour to flip with stay
+    (the tree build names them)."""
+    F = np.array(F, np.int64)
+    nv = len(V)
+    flips = 0
+    for _ in range(SLIVER_PASSES):
+        bad = np.flatnonzero(degenerate_faces(V, F))
+        if bad.size == 0:
+            break
+        key = np.concatenate([F[:, 0] * nv + F[:, 1], F[:, 1] * nv + F[:, 2], F[:, 2] * nv + F[:, 0]])
+        owner = np.tile(np.arange(len(F)), 3)
+        order = np.argsort(key, kind="stable")
+        key, owner = key[order], owner[order]
+        used = np.zeros(len(F), bool)
+        out = []
+        for f in bad:
+            c = F[f]
+            if used[f] or len(set(c.tolist())) < 3:
+                continue
+            P = V[c]
+            k = int(np.argmax([np.sum((P[(i + 1) % 3] - P[i]) ** 2) for i in range(3)]))  # the longest edge c[k] -> c[k+1]
+            a, b, m = c[k], c[(k + 1) % 3], c[(k + 2) % 3]
+            j = np.searchsorted(key, b * nv + a)
+            if j >= len(key) or key[j] != b * nv + a or used[owner[j]]:
+                continue
+            g = owner[j]
+            G = F[g]
+            s = int(G[(list(G).index(a) + 1) % 3])  # g runs b -> a -> s
+            used[f] = used[g] = True
+            out.append((f, g, (b, m, s), (m, a, s)))
+        if not out:
+            break
+        drop = np.zeros(len(F), bool)
+        new = []
+        for f, g, t1, t2 in out:
+            drop[f] = drop[g] = True
+            new += [t1, t2]
+        F = np.concatenate([F[~drop], np.array(new, np.int64)])
+        flips += len(out)
+    return F, flips

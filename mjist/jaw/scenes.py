@@ -359,10 +359,13 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
             # (a few nm in metres) would become one and leave zero-area faces its tree build
             # refuses; the mesh is written as MuJoCo will see it, cleaned of those slivers, at
             # full precision (the exporter's default 8 decimals would round them together too)
-            V, F, removed = single_precision(V, F)
+            V, F, removed, flipped = single_precision(V, F)
             if removed:
                 info["notes"].append(f"{name}: {removed} zero-area faces removed where vertices closer than MuJoCo's "
                                      "float32 resolution become one")
+            if flipped:
+                info["notes"].append(f"{name}: {flipped} slivers that MuJoCo's float32 rounding flattens flipped away "
+                                     "(each with its neighbour across its long edge)")
             trimesh.Trimesh(V, F, process=False).export(files[name], digits=17)
     kwargs.setdefault("max_error", 3e-4)
     if kind == "closure":

@@ -128,3 +128,31 @@ def test_build_rejects_units_mismatch():
         mjist.build(box(), max_error=-1.0)
     with pytest.raises(ValueError, match="branching"):
         mjist.build(box(), branching=1)
+
+
+def test_slivers_float32_flattens_are_flipped_away_and_the_surface_stays_closed():
+    """A closed mesh with a sliver whose middle corner lies 1e-9 m off its long edge: float32
+    rounding puts the three corners on one line (zero area, which the tree build refuses);
+    single_precision flips it away with its neighbour, keeping the surface closed and wound."""
+    import trimesh
+
+    from mjist.geometry.mesh import degenerate_faces, single_precision
+
+    tet = trimesh.Trimesh([[0.05, 0.05, 0.05], [0.0500001, 0.05, 0.05], [0.05, 0.06, 0.05], [0.05, 0.05, 0.06]],
+                          [[0, 1, 2], [0, 1, 3], [1, 2, 3], [0, 2, 3]], process=False)
+    tet.fix_normals()
+    V = np.vstack([tet.vertices, [0.05000005, 0.05 + 1e-9, 0.05]])  # m: on edge 0-1 in float32, not in float64
+    F = [list(f) for f in tet.faces]
+    f = next(i for i, t in enumerate(F) if {0, 1} <= set(t) and 2 in t)
+    a, b, c = F[f]
+    while {a, b} != {0, 1}:
+        a, b, c = b, c, a  # rotate so that a -> b is the edge 0-1 in the face's winding
+    F[f:f + 1] = [[a, 4, c], [4, b, c], [a, b, 4]]  # the face split at m, with the sliver a b m
+    F = np.array(F)
+    assert not degenerate_faces(V, F).any()  # fine in float64
+    assert degenerate_faces(V.astype(np.float32).astype(float), F).sum() == 1  # flat in float32
+    W, G, removed, flipped = single_precision(V, F)
+    assert (removed, flipped) == (0, 1) and len(G) == len(F)
+    assert not degenerate_faces(W, G).any()
+    m = trimesh.Trimesh(W, G, process=False)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
