@@ -388,6 +388,35 @@ def _ray_box(o, inv, lo, hi, node):
     return tmin <= tmax
 
 
+@njit(cache=True, inline="always")
+def _ray_triangle(ox, oy, oz, dx, dy, dz, V, F, f):
+    """Möller–Trumbore terms of the ray ``o + t d`` and face ``f``: the determinant (0 or tiny:
+    the ray runs along the face's plane), the barycentric ``u``, ``v``, the ray parameter ``t``
+    (meaningless when the determinant is 0) and the lengths of the face's edges ab, ac."""
+    a = F[f, 0]
+    ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
+    e1x, e1y, e1z = V[F[f, 1], 0] - ax, V[F[f, 1], 1] - ay, V[F[f, 1], 2] - az
+    e2x, e2y, e2z = V[F[f, 2], 0] - ax, V[F[f, 2], 1] - ay, V[F[f, 2], 2] - az
+    # pv = d x e2
+    pvx = dy * e2z - dz * e2y
+    pvy = dz * e2x - dx * e2z
+    pvz = dx * e2y - dy * e2x
+    det = e1x * pvx + e1y * pvy + e1z * pvz
+    l1 = np.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+    l2 = np.sqrt(e2x * e2x + e2y * e2y + e2z * e2z)
+    if det == 0.0:
+        return det, 0.0, 0.0, 0.0, l1, l2
+    inv_det = 1.0 / det
+    tx, ty, tz = ox - ax, oy - ay, oz - az
+    u = (tx * pvx + ty * pvy + tz * pvz) * inv_det
+    qx = ty * e1z - tz * e1y
+    qy = tz * e1x - tx * e1z
+    qz = tx * e1y - ty * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv_det
+    t = (e2x * qx + e2y * qy + e2z * qz) * inv_det
+    return det, u, v, t, l1, l2
+
+
 @njit(cache=True)
 def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol, skip=-1):
     """Winding number of ``o`` from the triangle crossings of the ray ``o + t d`` (t > 0).
@@ -425,37 +454,20 @@ def ray_winding(o, d, V, F, lo, hi, left, right, start, count, order, stack, tol
             f = order[i]
             if f == skip:
                 continue
-            a = F[f, 0]
-            ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
-            e1x, e1y, e1z = V[F[f, 1], 0] - ax, V[F[f, 1], 1] - ay, V[F[f, 1], 2] - az
-            e2x, e2y, e2z = V[F[f, 2], 0] - ax, V[F[f, 2], 1] - ay, V[F[f, 2], 2] - az
-            # pv = d x e2
-            pvx = dy * e2z - dz * e2y
-            pvy = dz * e2x - dx * e2z
-            pvz = dx * e2y - dy * e2x
-            det = e1x * pvx + e1y * pvy + e1z * pvz
-            l1 = np.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
-            l2 = np.sqrt(e2x * e2x + e2y * e2y + e2z * e2z)
-            tx, ty, tz = ox - ax, oy - ay, oz - az
+            det, u, v, t, l1, l2 = _ray_triangle(ox, oy, oz, dx, dy, dz, V, F, f)
             if abs(det) <= 1e-12 * l1 * l2:
                 # ray (nearly) in the triangle's plane: ambiguous only if the origin is in that plane
+                a = F[f, 0]
+                e1x, e1y, e1z = V[F[f, 1], 0] - V[a, 0], V[F[f, 1], 1] - V[a, 1], V[F[f, 1], 2] - V[a, 2]
+                e2x, e2y, e2z = V[F[f, 2], 0] - V[a, 0], V[F[f, 2], 1] - V[a, 1], V[F[f, 2], 2] - V[a, 2]
                 nx = e1y * e2z - e1z * e2y
                 ny = e1z * e2x - e1x * e2z
                 nz = e1x * e2y - e1y * e2x
-                if abs(tx * nx + ty * ny + tz * nz) <= 1e-9 * l1 * l2 * (l1 + l2):
+                if abs((ox - V[a, 0]) * nx + (oy - V[a, 1]) * ny + (oz - V[a, 2]) * nz) <= 1e-9 * l1 * l2 * (l1 + l2):
                     amb = True
                 continue
-            inv_det = 1.0 / det
-            u = (tx * pvx + ty * pvy + tz * pvz) * inv_det
-            if u < -tol or u > 1.0 + tol:
+            if u < -tol or u > 1.0 + tol or v < -tol or u + v > 1.0 + tol:
                 continue
-            qx = ty * e1z - tz * e1y
-            qy = tz * e1x - tx * e1z
-            qz = tx * e1y - ty * e1x
-            v = (dx * qx + dy * qy + dz * qz) * inv_det
-            if v < -tol or u + v > 1.0 + tol:
-                continue
-            t = (e2x * qx + e2y * qy + e2z * qz) * inv_det
             tscale = tol * (l1 + l2)
             if t < -tscale:
                 continue
@@ -497,30 +509,8 @@ def first_hits(O, d, V, F, lo, hi, left, right, start, count, order):
                 sp += 2
                 continue
             for i in range(start[node], start[node] + count[node]):
-                f = order[i]
-                a = F[f, 0]
-                ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
-                e1x, e1y, e1z = V[F[f, 1], 0] - ax, V[F[f, 1], 1] - ay, V[F[f, 1], 2] - az
-                e2x, e2y, e2z = V[F[f, 2], 0] - ax, V[F[f, 2], 1] - ay, V[F[f, 2], 2] - az
-                pvx = dy * e2z - dz * e2y
-                pvy = dz * e2x - dx * e2z
-                pvz = dx * e2y - dy * e2x
-                det = e1x * pvx + e1y * pvy + e1z * pvz
-                if det == 0.0:
-                    continue
-                inv_det = 1.0 / det
-                tx, ty, tz = ox - ax, oy - ay, oz - az
-                u = (tx * pvx + ty * pvy + tz * pvz) * inv_det
-                if u < 0.0 or u > 1.0:
-                    continue
-                qx = ty * e1z - tz * e1y
-                qy = tz * e1x - tx * e1z
-                qz = tx * e1y - ty * e1x
-                v = (dx * qx + dy * qy + dz * qz) * inv_det
-                if v < 0.0 or u + v > 1.0:
-                    continue
-                t = (e2x * qx + e2y * qy + e2z * qz) * inv_det
-                if 0.0 <= t < best:
+                det, u, v, t, _, _ = _ray_triangle(ox, oy, oz, dx, dy, dz, V, F, order[i])
+                if det != 0.0 and 0.0 <= u <= 1.0 and v >= 0.0 and u + v <= 1.0 and 0.0 <= t < best:
                     best = t
         out[r] = best
     return out
