@@ -200,21 +200,23 @@ def touch_offset(bvh_maxilla, bvh_mandible, up, reach: float = REACH, tol: float
                 f"the jaws do not meet within {reach * 1e3:g} mm of the mandible moving up: the two arches do not face "
                 "each other (not a maxilla and a mandible of one patient, not in occlusion, or up is wrong); pass "
                 "up=... (--up) or place the jaws in occlusion")
+    bx, bd = bvh_maxilla, bvh_mandible
     if meshes is not None:
-        a, b = _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a, b, tol)
+        a, b, (bx, bd) = _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a, b, tol)
     while abs(a - b) > tol:
         m = 0.5 * (a + b)
-        if _collides(bvh_maxilla, bvh_mandible, m * u):
+        if _collides(bx, bd, m * u):
             a = m
         else:
             b = m
     return b
 
 
-def _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a: float, b: float, tol: float) -> tuple[float, float]:
+def _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a: float, b: float, tol: float):
     """``touch_offset``'s bracket (touching ``a``, apart ``b``) narrowed around the offset where a
-    vertex of one jaw first meets the other (rays along ``u`` from the apart pose ``b``), and
-    bisected to ``tol`` there."""
+    vertex of one jaw first meets the other (rays along ``u`` from the apart pose ``b``), and the
+    coal BVHs that answer for every offset inside it: the faces that can meet there, or the
+    whole jaws."""
     from ..geometry.bvh import BVH
     from .exact import coal_bvh, near_faces
 
@@ -222,27 +224,21 @@ def _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a: float, b: float, to
     up_hits = BVH.of_triangles(Vx, Fx).first_hits(Vd + b * u, u, Vx, Fx)  # mandible vertices rising into the maxilla
     down_hits = BVH.of_triangles(Vd, Fd).first_hits(Vx - b * u, -u, Vd, Fd)  # maxilla vertices, the mandible's view
     t = b + min(float(up_hits.min(initial=np.inf)), float(down_hits.min(initial=np.inf)))
+    whole = (bvh_maxilla, bvh_mandible)
     if not b < t < a:
-        return a, b
+        return a, b, whole
     a = t  # a vertex lies on the other surface: touching (coal counts meshes within about 1 µm as touching)
     # the tests near t see only the faces that can meet within NEAR_STEPS of it
     near = near_faces((Vx, Fx), (Vd + t * u, Fd), NEAR_STEPS * tol)
     near = (coal_bvh(Vx, Fx[near[0]]), coal_bvh(Vd, Fd[near[1]])) if near[0].any() and near[1].any() else None
     step = 2.0 * tol
     while t - step > b:  # an edge may meet an edge before any vertex meets a face: step back until apart
-        bx, bd = near if near is not None and step <= NEAR_STEPS * tol else (bvh_maxilla, bvh_mandible)
-        if not _collides(bx, bd, (t - step) * u):
-            b = t - step
-            while a - b > tol:  # the bisection, on the same faces
-                m = 0.5 * (a + b)
-                if _collides(bx, bd, m * u):
-                    a = m
-                else:
-                    b = m
-            return a, b
+        bvhs = near if near is not None and step <= NEAR_STEPS * tol else whole
+        if not _collides(*bvhs, (t - step) * u):
+            return a, t - step, bvhs
         a = t - step
         step *= 16.0
-    return a, b
+    return a, b, whole
 
 
 def hinge_touch(bvh_maxilla, bvh_mandible, hinge, reach_deg: float = 25.0, tol_deg: float = 1e-4) -> float:

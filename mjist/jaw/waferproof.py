@@ -210,7 +210,9 @@ def holding(scene, wafer_file, planned, points, centre, directions: dict, *, clo
     # that turn smoothly as a cusp slides in them; the cusps' own are sharp
     spec.mesh("mandible").octree_maxdepth = SDF_OCTREE_DEPTH
     spec.geom("mandible").type = mujoco.mjtGeom.mjGEOM_SDF
-    spec.option.sdf_initpoints = max(int(spec.option.sdf_initpoints), CONTACTS)
+    settings.setdefault("contacts", CONTACTS)
+    settings.setdefault("surface_groups", SURFACE_GROUPS)
+    spec.option.sdf_initpoints = max(int(spec.option.sdf_initpoints), int(settings["contacts"]))
     spec.add_mesh(name="wafer", file=str(wafer_file))
     spec.worldbody.add_geom(name="wafer", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="wafer", rgba=[0.55, 0.75, 0.95, 1.0])
     model = spec.compile()
@@ -220,8 +222,6 @@ def holding(scene, wafer_file, planned, points, centre, directions: dict, *, clo
     model.geom_solref[:] = solref
     if solimp is not None:
         model.geom_solimp[:] = solimp
-    settings.setdefault("contacts", CONTACTS)
-    settings.setdefault("surface_groups", SURFACE_GROUPS)
     handle = attach(model, geoms=["maxilla", "mandible", "wafer"], narrowphase=narrowphase, cache_dir=cache_dir,
                     progress=progress, **settings)
     try:
