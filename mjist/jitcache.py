@@ -2,7 +2,7 @@
 
 numba keys a cached kernel on its own file only: a kernel that compiles in a function of
 another module keeps the old version of it after that module changes (the penalty-force
-cfunc in ``mujoco/forces.py`` inlines the hook's contact path from ``mujoco/hook.py``, so a
+cfunc in ``mujoco/forces.py`` links in the hook's contact path from ``mujoco/hook.py``, so a
 change of ``hook.py`` alone would leave the old contact law in the penalty forces). ``check``
 runs when ``mjist`` is imported, before any kernel loads: it hashes every source of the package,
 subpackages included, and, when the hash differs from the one the cache was built with, removes

@@ -75,7 +75,7 @@ PATH_DEPTH = 28
 DEPTH_BITS = 5
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cov(ax, ay, az, bx, by, bz, cx, cy, cz):
     """Covering radius of a triangle by its vertices (scalar form: no temporaries)."""
     abx, aby, abz = bx - ax, by - ay, bz - az
@@ -93,7 +93,7 @@ def _cov(ax, ay, az, bx, by, bz, cx, cy, cz):
     return np.sqrt(la * lb * lc / (4.0 * area2))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _in_other_disk(px, py, D, k, m, n):
     """Is (px, py) strictly inside one of the disks ``D[:k]`` other than ``m`` and ``n``?"""
     for q in range(k):
@@ -199,12 +199,12 @@ def _balls_cover(ax, ay, az, bx, by, bz, cx, cy, cz, js, nj, C, R, t, D):
     return True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _gap_at(x, y, z, C, R, lo, hi, left, right, start, count, order, stack):
     return sphere_gap_xyz(x, y, z, C, R, lo, hi, left, right, start, count, order, stack, np.inf)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _gap_near(x, y, z, ja, jb, C, R, lo, hi, left, right, start, count, order, stack):
     """``_gap_at`` warm-started by the nearest spheres of the edge's two ends (prunes the search)."""
     bound = np.inf
@@ -223,7 +223,7 @@ def _gap_near(x, y, z, ja, jb, C, R, lo, hi, left, right, start, count, order, s
     return g, j
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _sphere_ub(P, sp, C, R, j):
     """max over the triangle's vertices of the gap to sphere j (convex: its max over T)."""
     m = 0.0
@@ -344,7 +344,7 @@ def _certify_triangle(V, F, f, C, R, lo, hi, left, right, start, count, order, t
     return ub_max, lb_max, nbad
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cover_test(P, J, PJ, sp, js, C, R, target, D):
     """``_balls_cover`` of sub-triangle ``sp`` by its vertices' and its parent's nearest spheres."""
     nj = 0
@@ -388,7 +388,7 @@ def _cover_all(ax, ay, az, bx, by, bz, cx, cy, cz, C, R, lo, hi, left, right, st
     return 0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _put(P, G, J, s, x0, y0, z0, g0, j0, x1, y1, z1, g1, j1, x2, y2, z2, g2, j2):
     P[s, 0, 0], P[s, 0, 1], P[s, 0, 2] = x0, y0, z0
     P[s, 1, 0], P[s, 1, 1], P[s, 1, 2] = x1, y1, z1
@@ -397,7 +397,7 @@ def _put(P, G, J, s, x0, y0, z0, g0, j0, x1, y1, z1, g1, j1, x2, y2, z2, g2, j2)
     J[s, 0], J[s, 1], J[s, 2] = j0, j1, j2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _sub_ub(P, G, J, sp, cov, ub_parent, C, R):
     """Bound of sub-triangle ``sp`` from its vertex gaps and the spheres nearest to its vertices."""
     ub = min(max(G[sp, 0], G[sp, 1], G[sp, 2]) + cov, ub_parent)

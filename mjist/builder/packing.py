@@ -518,7 +518,7 @@ def _min_rate(U, act, na, dx, dy, dz):
     return m
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _try_direction(U, act, na, dx, dy, dz, tiny, best, bx, by, bz):
     """The better of the direction ``(dx, dy, dz)``, normalized (skipped if shorter than
     ``tiny``), and the best so far ``(bx, by, bz)`` with rate ``best``."""

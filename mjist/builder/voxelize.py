@@ -147,7 +147,7 @@ def sorted_unique(keys):
 # where it is concave ``min_depth`` below r_min leaves room for the surface bending away.
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _plane_keep(S, N, s, origin, h, a, b, c, depth, min_depth):
     if N[s, 0] == 0.0 and N[s, 1] == 0.0 and N[s, 2] == 0.0:  # no side known: the whole cube
         return True

@@ -174,7 +174,7 @@ def build_bvh(prim_lo, prim_hi):
     return lo[:m].copy(), hi[:m].copy(), left[:m].copy(), right[:m].copy(), start[:m].copy(), count[:m].copy(), order
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def box_dist2(p0, p1, p2, lo, hi, node):
     d2 = 0.0
     v = lo[node, 0] - p0
@@ -201,18 +201,18 @@ def box_dist2(p0, p1, p2, lo, hi, node):
     return d2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _dot(ax, ay, az, bx, by, bz):
     return ax * bx + ay * by + az * bz
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def ball_gap(px, py, pz, C, R, j):
     """Signed distance from a point to sphere ``j`` (negative inside it)."""
     return np.sqrt((px - C[j, 0]) ** 2 + (py - C[j, 1]) ** 2 + (pz - C[j, 2]) ** 2) - R[j]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def face_normal(V, F, f):
     """Outward normal ``(b - a) x (c - a)`` of triangle ``f`` (not normalized)."""
     a = F[f, 0]
@@ -238,7 +238,7 @@ def closest_on_triangle(px, py, pz, V, i0, i1, i2):
                                   V[i2, 0], V[i2, 1], V[i2, 2])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz):
     """Closest point of segment ``ab`` to ``p`` and its parameter along it (0 at ``a``)."""
     ux, uy, uz = bx - ax, by - ay, bz - az
@@ -269,7 +269,7 @@ def _closest_on_sliver(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     return qx, qy, qz, feature
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def closest_on_triangle_xyz(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """``closest_on_triangle`` of the triangle with corners ``a, b, c`` given as floats."""
     abx, aby, abz = bx - ax, by - ay, bz - az
@@ -374,7 +374,7 @@ for _k in range(RAY_DIRS.shape[0]):
     RAY_DIRS[_k] /= np.linalg.norm(RAY_DIRS[_k])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _ray_box(o, inv, lo, hi, node):
     tmin = 0.0
     tmax = np.inf
@@ -388,7 +388,7 @@ def _ray_box(o, inv, lo, hi, node):
     return tmin <= tmax
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _ray_triangle(ox, oy, oz, dx, dy, dz, V, F, f):
     """Möller–Trumbore terms of the ray ``o + t d`` and face ``f``: the determinant (0 or tiny:
     the ray runs along the face's plane), the barycentric ``u``, ``v``, the ray parameter ``t``
@@ -635,7 +635,7 @@ def sphere_gap_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order, s
     return max(best, 0.0), bi
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _near_scan(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, out):
     """The spheres whose gap from ``(px, py, pz)`` is below ``bound`` into ``out``, until it is
     full: returns ``(n, j)``, ``j`` the sphere found with ``out`` already full (-1: all found)."""
@@ -680,7 +680,7 @@ def sphere_within_xyz(px, py, pz, C, R, lo, hi, left, right, start, count, order
     return _near_scan(px, py, pz, C, R, lo, hi, left, right, start, count, order, stack, bound, stack[:0])[1]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def sphere_gap(p, C, R, lo, hi, left, right, start, count, order, stack, bound):
     """``sphere_gap_xyz`` at the point ``p (3,)``."""
     return sphere_gap_xyz(p[0], p[1], p[2], C, R, lo, hi, left, right, start, count, order, stack, bound)

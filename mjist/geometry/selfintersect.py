@@ -24,12 +24,12 @@ SHRINK = 1e-6  # faces sharing a vertex are shrunk by this fraction towards thei
 TOL = 1e-9  # touching tolerance, a fraction of the pair's size (touching counts as crossing)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _sub(a, b):
     return a[0] - b[0], a[1] - b[1], a[2] - b[2]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cross(ax, ay, az, bx, by, bz):
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
@@ -45,7 +45,7 @@ def _unit_normal(T):
     return nx / ln, ny / ln, nz / ln
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _orient(a, b, x, nx, ny, nz):
     """Signed distance of ``x`` from the line ``a b`` within the plane of normal ``n`` (left > 0)."""
     ex, ey, ez = b[0] - a[0], b[1] - a[1], b[2] - a[2]

@@ -112,19 +112,19 @@ def unpack(floats, ints, nv, nf, m):
     return NODE, TRI, ORDER, F, FN, VN, ADJ, POS
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def float_words(nv, nf, m):
     """Length of a packed surface's ``floats``."""
     return NODE_W * m + 12 * nf + 3 * nv
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def int_words(nf):
     """Length of a packed surface's ``ints``."""
     return 8 * nf
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _box2(px, py, pz, NODE, i):
     """Squared distance from a point to node ``i``'s box."""
     d2 = 0.0
@@ -139,7 +139,7 @@ def _box2(px, py, pz, NODE, i):
     return d2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _closest(S, px, py, pz, stack, best):
     """Squared distance to the surface, closest point, its triangle's position in ``TRI`` and
     its feature (``bvh.closest_on_triangle``); triangle -1 when nothing is closer than ``best``."""
@@ -181,7 +181,7 @@ def _closest(S, px, py, pz, stack, best):
     return best, qx, qy, qz, bt, feature
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _pseudo_normal(S, f, feature):
     """Unnormalized pseudo-normal of ``feature`` (``bvh.VERT_A`` ...) of face ``f``."""
     F, FN, VN, ADJ = S[3], S[4], S[5], S[6]
@@ -195,7 +195,7 @@ def _pseudo_normal(S, f, feature):
     return FN[f, 0], FN[f, 1], FN[f, 2]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _signed(S, f, feature, d2, qx, qy, qz, px, py, pz, out):
     """``signed_closest``'s ``out`` from the closest point ``q`` on ``feature`` of face ``f``."""
     nx, ny, nz = _pseudo_normal(S, f, feature)
@@ -228,7 +228,7 @@ def signed_closest(S, px, py, pz, stack, bound2, out):
     return _signed_closest_face(S, px, py, pz, stack, bound2, out) >= 0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _signed_closest_face(S, px, py, pz, stack, bound2, out):
     """``signed_closest`` returning the closest point's face (-1: none within the bound)."""
     d2, qx, qy, qz, t, feature = _closest(S, px, py, pz, stack, bound2)
@@ -244,7 +244,7 @@ WALK_STEPS = 64  # faces a walk moves through at most (it stops earlier at a loc
 RING_MAX = 64  # faces around one vertex a walk looks at, at most
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _on_face(S, g, px, py, pz):
     """Squared distance from p to face ``g``, the closest point and its feature."""
     T = S[1][S[7][g]]
@@ -305,7 +305,7 @@ def _walk(S, f, px, py, pz, out):
     return f
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _to_b(xf, x, y, z):
     """A point of A's frame in B's frame: R^T (p - t)."""
     px, py, pz = x - xf[9], y - xf[10], z - xf[11]
@@ -313,7 +313,7 @@ def _to_b(xf, x, y, z):
             xf[2] * px + xf[5] * py + xf[8] * pz)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _near(S, x, y, z, stack, within, out):
     """``signed_closest`` looking first within ``within`` of the point (a bound that prunes the
     tree), then everywhere when rounding left the bound too tight; returns the face (-1: the
@@ -325,7 +325,7 @@ def _near(S, x, y, z, stack, within, out):
     return _signed_closest_face(S, x, y, z, stack, np.inf, out)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _on_b(SB, xf, x, y, z, stack, within, b, f):
     """``b`` ← B's closest point to ``(x, y, z)`` (known within ``within``; walked to from B's
     face ``f`` when ``f`` ≥ 0) and B's outward direction there, in A's frame. Returns the face
@@ -376,7 +376,7 @@ def overlap_depth(SA, SB, xf, x, y, z, nx, ny, nz, within, stack, out):
     return 2.0 * min(da, db)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _answer(a, x, y, z, out):
     """``local_distance``'s answer for B's point ``(x, y, z)`` and A's query there, ``a``."""
     out[0] = a[0]

@@ -239,25 +239,25 @@ def arch_point(s, v, anatomy: Anatomy = DESIGN):
 # --- the implicit field (numba) -----------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _smin(a, b, k):
     h = max(k - abs(a - b), 0.0) / k
     return min(a, b) - h * h * k * 0.25
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _smax(a, b, k):
     return -_smin(-a, -b, k)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _round_box2(px, py, hx, hy, r):
     qx = abs(px) - hx + r
     qy = abs(py) - hy + r
     return math.sqrt(max(qx, 0.0) ** 2 + max(qy, 0.0) ** 2) + min(max(qx, qy), 0.0) - r
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _gauss_sum(s, v, C):
     acc = 0.0
     for k in range(C.shape[0]):
@@ -312,7 +312,7 @@ def _crowns(s, v, y, f, g, iv, B, T, taper, upper):
     return d
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _seg_dist(px, py, ax, ay, bx, by):
     ex = bx - ax
     ey = by - ay

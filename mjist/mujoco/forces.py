@@ -125,14 +125,14 @@ OBJ_BODY, OBJ_XBODY = 1, 2  # mjtObj: a body's inertial frame (centre of mass), 
 VMAX, WMAX = 2.0, 30.0  # m/s, rad/s: faster handle motion between two steps is a jump, not a velocity
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cross_acc(a, b, out, s):
     out[0] += s * (a[1] * b[2] - a[2] * b[1])
     out[1] += s * (a[2] * b[0] - a[0] * b[2])
     out[2] += s * (a[0] * b[1] - a[1] * b[0])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _point_velocity(vel, org, p, out):
     """Linear velocity at world point ``p`` of a body with ``vel = (ω, v at org)``."""
     rx = p[0] - org[0]
@@ -143,7 +143,7 @@ def _point_velocity(vel, org, p, out):
     out[2] = vel[5] + vel[0] * ry - vel[1] * rx
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _rotate(q, x, y, z, out):
     """``out`` = unit quaternion ``q`` (w, x, y, z) applied to (x, y, z)."""
     w, a, b, c = q[0], q[1], q[2], q[3]
@@ -155,7 +155,7 @@ def _rotate(q, x, y, z, out):
     out[2] = z + w * tz + (a * ty - b * tx)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _unit_quat(q, out):
     """``out`` = ``q`` / |q|; the identity for a (near) zero quaternion, as ``mju_normalize4``."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -225,7 +225,7 @@ def _penalty_pair(E, m, d, row, con, small, big, out):
     _apply(E, m, d, b1, b2, com, small, out)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _add_force(amount, k, c, v1, o1, v2, o2, com, pnt, nrm, tmp, out):
     """Hunt–Crossley force ``max(0, k a − c a v_n)`` of amount ``a`` (depth or volume) along
     ``nrm`` at ``pnt`` added to ``out`` (force, torque about ``com``); v_n is the normal speed of

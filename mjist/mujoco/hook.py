@@ -143,7 +143,7 @@ from .layout import (
 SLACK_MIN, SLACK_MAX, SLACK_MOTION = 0.05, 0.5, 4.0  # front slack: fractions of ε1+ε2, x last step's motion
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def model_entry(m):
     """Address of the registry entry of model ``m`` (0: not attached)."""
     root_addr = abi.registry_root()
@@ -157,7 +157,7 @@ def model_entry(m):
     return 0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def geom_pose(xpos, xmat, g, P):
     """``P`` = 4x4 world pose of geom ``g`` from mjData's ``geom_xpos``/``geom_xmat`` arrays."""
     for i in range(3):
@@ -170,7 +170,7 @@ def geom_pose(xpos, xmat, g, P):
     P[3, 3] = 1.0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def claim_slot(E, d, p, nslot, other):
     """Index of the (d, pair) state slot (its second one if ``other``), claimed on first use;
     -1 when the table is full."""
@@ -192,7 +192,7 @@ def claim_slot(E, d, p, nslot, other):
     return -1, False
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def stack_room(E, d, need):
     """Whether MuJoCo's stack of ``d`` can give ``need`` bytes and keep STACK_RESERVE free.
 
@@ -205,21 +205,21 @@ def stack_room(E, d, need):
     return free >= need + STACK_RESERVE
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pair_trees(E, g1, g2):
     """The packed trees ``(Na, Nb)`` of managed geoms ``g1``, ``g2``."""
     Na, Nb, _, _ = pair_arrays(E, g1, g2)
     return Na, Nb
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pair_exits(E, g1, g2):
     """The trees' exit directions ``(Xa, Xb)`` of managed geoms ``g1``, ``g2`` (``traverse.exit_directions``)."""
     _, _, Xa, Xb = pair_arrays(E, g1, g2)
     return Xa, Xb
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pair_arrays(E, g1, g2):
     """``(Na, Nb, Xa, Xb)``: the packed trees of managed geoms ``g1``, ``g2`` and their exit directions."""
     nman = E[E_NMAN]
@@ -234,7 +234,7 @@ def pair_arrays(E, g1, g2):
     return Na, Nb, Xa, Xb
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _pair_scratch(E, scratch, cap):
     """Views of a pair call's scratch (``layout.pair_floats``, ``layout.pair_ints``): float64
     poses, stack values, candidate values, dmin, geometry rows, a stateless slot, the blend
@@ -265,7 +265,7 @@ def _pair_scratch(E, scratch, cap):
     return Pa, Pb, xf, sv, cval, dmin, geom, fs_local, bacc, st, cand, chosen, pair, is_local
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _posed(E, d, g1, g2, Pa, Pb, xf):
     """``Pa``, ``Pb`` ← the two geoms' world poses, ``xf`` ← B in A's frame; False for a bad pose."""
     xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
@@ -275,7 +275,7 @@ def _posed(E, d, g1, g2, Pa, Pb, xf):
     return tv.relative_pose(Pa, Pb, xf)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _write_row(row, dist, Pa, g):
     """A contact row of ``con``: ``dist``, then the point (``g[9:12]``) and normal (``g[0:3]``)
     of A's frame in world coordinates; the frame's other axes are MuJoCo's to complete."""
@@ -358,7 +358,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
     return k
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def distance_request(E, d, con, raw):
     """Whether MuJoCo asks for the distance only: ``mj_geomDistance`` (and the distance sensors
     that call it) passes a contact buffer on the caller's own C stack, while ``mj_collision``'s
@@ -597,7 +597,7 @@ def _write_contacts(E, Na, Nb, Xa, Xb, xf, Pa, cand, cval, chosen, k, geom, thr,
 TURN_COS = 0.5
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _side_of_approach(mem, nmem, g, reach):
     """Turn normal ``g[0:3]`` back to the side it came from: the normal of the remembered contact
     nearest to point ``g[9:12]`` when that one lies within ``reach`` and is more than 60° away."""
@@ -634,7 +634,7 @@ def _blend_group(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair, g):
     return visits
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _surface(E, g):
     """The packed surface (``geometry.surface.unpack``) of managed geom ``g``."""
     k = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])[g]
@@ -647,7 +647,7 @@ def _surface(E, g):
     return sf.unpack(fl, it, nv, nf, m)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _surface_scratch(E, scratch, cap):
     """The surface narrow phase's part of a pair call's scratch (the tails of
     ``layout.pair_floats`` and ``layout.pair_ints``): candidate values, ``local_distance``'s
@@ -805,7 +805,7 @@ def _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, scratch):
     return k_out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _collide_prim(E, d, con, g1, g2, ka, kb, margin):
     """The primitive path of ``collide``; -1 when the pair is not ours."""
     ngeom = E[E_NGEOM]

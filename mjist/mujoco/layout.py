@@ -103,7 +103,7 @@ KEY_OTHER = np.int64(-(1 << 63))  # a pair's second slot: calls with another mar
 MAX_GEOMS = math.isqrt((1 << (63 - KEY_SHIFT)) - 2)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def slot_key(d, p, other):
     """Key of the state slot of MjData ``d`` and pair (or coupling) ``p``."""
     key = d | (p << KEY_SHIFT)
@@ -139,7 +139,7 @@ PEN_CAP = 64  # contact groups a penalty pair sums at most (the deepest and most
 SMALL = 64  # float64 words of the forces' per-call temporaries
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pair_floats(ns, nc):
     """float64 words of a pair call: poses, stack values, candidate values, dmin, geometry rows,
     the stateless slot, the blend accumulator; then the surface narrow phase's candidate values
@@ -147,49 +147,49 @@ def pair_floats(ns, nc):
     return POSE_W + ns + nc * (2 + PAIR_GEOM_W) + FW + tv.BLEND_W + nc + SURF_F
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pair_ints(ns, nc, cap):
     """int64 words of a pair call: stack pairs, candidates, chosen, closest pair, stateless slot,
     the surface queries' stack."""
     return 2 * ns + 4 * nc + cap + 2 + IW + sf.STACK
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pair_scratch_bytes(ns, nc, cap):
     return 8 * pair_floats(ns, nc) + 8 * pair_ints(ns, nc, cap) + 64
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def prim_floats(nc):
     """float64 words of a tree–primitive call: PRIM_F, values, dmin, geometry rows."""
     return PRIM_F + nc * (cp.GEOM_W + 2)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def prim_ints(ns, nc, cap):
     """int64 words of a tree–primitive call: stack, candidates (group, leaf), chosen."""
     return ns + 2 * nc + cap
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def prim_scratch_bytes(ns, nc, cap):
     return 8 * prim_floats(nc) + 8 * prim_ints(ns, nc, cap) + 64
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def forces_small_floats():
     """float64 words of the forces' fixed part: a contact buffer, temporaries, a spare output row."""
     return PEN_CAP * abi.PRECONTACT_DOUBLES + SMALL + PO
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def forces_big_bytes(ns, nc):
     """The forces' traversal scratch: a pair call's, or the penetration volume's (poses, stack)."""
     own = 8 * (POSE_W + ns) + 8 * (2 * ns + 2) + 64
     return max(pair_scratch_bytes(ns, nc, PEN_CAP), own)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def forces_scratch_bytes(ns, nc):
     return 8 * forces_small_floats() + forces_big_bytes(ns, nc) + 128
 

@@ -37,13 +37,13 @@ _REF_D = 12
 _REF_OK = 13
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _world_point(P, x, y, z, out, o):
     for i in range(3):
         out[o + i] = P[i, 0] * x + P[i, 1] * y + P[i, 2] * z + P[i, 3]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _world_vec(P, x, y, z, out, o):
     for i in range(3):
         out[o + i] = P[i, 0] * x + P[i, 1] * y + P[i, 2] * z

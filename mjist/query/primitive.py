@@ -28,7 +28,7 @@ TYPES = (SPHERE, CAPSULE, CYLINDER, BOX)
 GEOM_W = 7  # per candidate: normal (3, primitive → tree), contact point (3), leaf value
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _sgn(v):
     return 1.0 if v >= 0.0 else -1.0
 
@@ -104,7 +104,7 @@ def signed_distance(ptype, s0, s1, s2, x, y, z, g):
     return L - s0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _to_prim(xf, N, i, q):
     x = N[i, 0]
     y = N[i, 1]

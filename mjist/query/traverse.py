@@ -75,7 +75,7 @@ def stack_size(*trees) -> int:
 # --------------------------------------------------------------------------- pose helpers
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _rigid(P):
     """``P`` is finite and its rotation block orthonormal."""
     for i in range(3):
@@ -90,7 +90,7 @@ def _rigid(P):
     return True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def relative_pose(Pa, Pb, xf):
     """``xf`` ← pose of B in A's frame, ``Pa^-1 Pb`` for rigid 4x4 ``Pa, Pb``.
 
@@ -107,7 +107,7 @@ def relative_pose(Pa, Pb, xf):
     return True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _to_a(xf, N, j):
     """Centre of B's node ``j`` in A's frame."""
     x = N[j, 0]
@@ -120,7 +120,7 @@ def _to_a(xf, N, j):
     )
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _offset(Na, Nb, xf, a, b):
     """From A's node ``a`` to B's node ``b`` (A's frame): the centres' offset and its length."""
     bx, by, bz = _to_a(xf, Nb, b)
@@ -130,7 +130,7 @@ def _offset(Na, Nb, xf, a, b):
     return dx, dy, dz, math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def pair_value(Na, Nb, xf, a, b):
     """Signed sphere distance of A's node ``a`` and B's node ``b`` (a lower bound below them)."""
     _, _, _, d = _offset(Na, Nb, xf, a, b)
@@ -160,7 +160,7 @@ def motion_bound(xf0, xf1, c, rho):
 # --------------------------------------------------------------------------- core descent
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _push_children(Na, Nb, xf, a, b, split_a, thr, st, sv, sp):
     """Push the child pairs of ``(a, b)`` whose value is below ``thr``, nearest on top.
 
@@ -204,7 +204,7 @@ def _push_children(Na, Nb, xf, a, b, split_a, thr, st, sv, sp):
     return sp
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _sort_desc(st, sv, base, sp):
     """Insertion sort of stack entries ``base:sp`` by value, descending (smallest popped first)."""
     for i in range(base + 1, sp):
@@ -385,7 +385,7 @@ def min_distance_backtrack(Na, Nb, xf, st, sv, tol, pair, stop_at):
 # --------------------------------------------------------------------------- leaf pair geometry
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def leaf_geometry(Na, Nb, xf, a, b, out):
     """Normal (A→B), point on A's ball, point on B's ball, contact point, in A's frame, into ``out[0:12]``.
 
@@ -662,7 +662,7 @@ def blend(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair):
 # --------------------------------------------------------------------------- multipoint
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def ancestor_at(N, n, depth):
     """Ancestor of node ``n`` at ``depth`` (``n`` itself if it is shallower)."""
     while N[n, DEP] > depth:
@@ -670,7 +670,7 @@ def ancestor_at(N, n, depth):
     return n
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _keep_candidate(cand, cval, n, a, b, pair, best):
     """Add group ``(a, b)``'s deepest pair; when full, replace the shallowest if this one is deeper."""
     cap_cand = cand.shape[0]
@@ -819,7 +819,7 @@ def select_spread(Na, Nb, xf, cand, cval, n, k_max, chosen, geom, dmin):
 # --------------------------------------------------------------------------- penetration volume
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def lens_volume(ra, rb, d):
     """Volume of the intersection of two balls of radii ``ra, rb`` whose centres are ``d`` apart."""
     s = ra + rb
