@@ -4,6 +4,12 @@ A scene's second start loads its trees instead of rebuilding them. The key hashe
 vertex and face bytes (as MuJoCo compiled them), the build parameters, the builder version
 and the tree format version, so any change of mesh, scale, parameters or builder builds a
 new tree; a corrupt or foreign entry is rebuilt and overwritten.
+
+Entries are looked up in the cache folder first, then in the read-only folders of
+``prebuilt_folders`` (the bundled jaws' trees ship with the package, so a new user's first
+``mjist demo`` loads them instead of compiling the builder and building them). A prebuilt
+entry has the same key as a cached one, so it is only ever found for the very mesh, parameters
+and builder it was made with.
 """
 from __future__ import annotations
 
@@ -25,6 +31,24 @@ def cache_dir(path=None) -> str:
             os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "mjist"
         )
     return os.fspath(path)
+
+
+PREBUILT: list[str] | None = None  # None: ``prebuilt_folders``'s default; a list replaces it ([]: none)
+
+
+def prebuilt_folders() -> list[str]:
+    """Read-only folders searched after the cache: the bundled jaws' ``trees`` folder
+    (``scripts/make_jaws.py --trees`` writes it), unless ``PREBUILT`` says otherwise."""
+    if PREBUILT is not None:
+        return list(PREBUILT)
+    from .jaw import bundled_models
+
+    return [os.fspath(bundled_models() / "trees")]
+
+
+def _find(folder: str, name: str) -> list[str]:
+    """``name`` in the cache folder, then in the prebuilt folders: the paths that exist."""
+    return [p for p in (os.path.join(f, name) for f in [folder, *prebuilt_folders()]) if os.path.exists(p)]
 
 
 def _explicit(params: dict) -> dict:
@@ -63,9 +87,9 @@ def cached_tree(vertices, faces, params: dict, *, folder=None, progress: bool = 
     folder = cache_dir(folder)
     key = tree_key(vertices, faces, params)
     path = os.path.join(folder, f"{key}.ist.npz")
-    if os.path.exists(path):
+    for found in _find(folder, f"{key}.ist.npz"):
         try:
-            return load_tree(path), True
+            return load_tree(found), True
         except TreeFileError as exc:
             warnings.warn(f"rebuilding cached tree{' of ' + name if name else ''}: {exc}", RuntimeWarning, stacklevel=2)
     tree = build((vertices, faces), progress=progress, **params)
@@ -90,13 +114,15 @@ def cached_exits(N, vertices, faces, compute, *, folder=None) -> np.ndarray:
         h.update(a.tobytes())
     h.update(f"exits{EXITS_VERSION}".encode())
     folder = cache_dir(folder)
-    path = os.path.join(folder, f"{h.hexdigest()[:40]}.exits.npy")
-    try:
-        X = np.load(path, allow_pickle=False)
-        if X.shape == (N.shape[0], 4) and X.dtype == np.float64 and np.isfinite(X).all():
-            return np.ascontiguousarray(X)
-    except (OSError, ValueError):
-        pass
+    name = f"{h.hexdigest()[:40]}.exits.npy"
+    path = os.path.join(folder, name)
+    for found in _find(folder, name):
+        try:
+            X = np.load(found, allow_pickle=False)
+            if X.shape == (N.shape[0], 4) and X.dtype == np.float64 and np.isfinite(X).all():
+                return np.ascontiguousarray(X)
+        except (OSError, ValueError):
+            pass
     X = np.ascontiguousarray(compute(), np.float64)
     try:
         os.makedirs(folder, exist_ok=True)

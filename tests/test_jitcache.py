@@ -46,7 +46,7 @@ def test_a_change_in_one_subpackage_drops_every_subpackages_kernels(tmp_path):
         (tmp_path / sub / "__init__.py").write_text("")
     (tmp_path / "query" / "traverse.py").write_text("z = 1\n")
     (tmp_path / "mujoco" / "forces.py").write_text("y = 2\n")
-    kernel = tmp_path / "mujoco" / "__pycache__" / "forces.passive-1.py311.nbi"
+    kernel = tmp_path / "mujoco" / "__pycache__" / "forces._passive-1.py311.nbi"
     assert jitcache.check(tmp_path)
     kernel.write_bytes(b"cached")
     assert not jitcache.check(tmp_path) and kernel.exists()

@@ -34,6 +34,7 @@ raises; problems are counted.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 from numba import carray, cfunc, njit, types
@@ -462,8 +463,7 @@ def apply(E, m, d):
     abi.call_with_data(E[E_FREE], d)
 
 
-@cfunc(types.void(types.int64, types.int64), cache=True)
-def passive(m, d):
+def _passive(m, d):
     """``mjcb_passive``: the previous callback, then this model's penalty forces and couplings."""
     root_addr = abi.registry_root()
     if root_addr == 0:
@@ -478,3 +478,10 @@ def passive(m, d):
     E = carray(abi.i64_ptr(e), E_WORDS)
     if E[E_NPEN] > 0 or E[E_NCPL] > 0:
         apply(E, m, d)
+
+
+@functools.cache
+def passive():
+    """The ``mjcb_passive`` cfunc, compiled (or loaded from numba's cache) on first use, so a
+    scene without penalty pairs or couplings never compiles the force laws."""
+    return cfunc(types.void(types.int64, types.int64), cache=True)(_passive)

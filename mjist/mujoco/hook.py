@@ -129,6 +129,7 @@ from .layout import (
     ROOT_N,
     ROOT_ORIG,
     ROOT_WORDS,
+    SLOTS,
     STACK_RESERVE,
     SURF_F,
     pair_floats,
@@ -877,41 +878,64 @@ def collide(slot, m, d, con, g1, g2, margin):
 
 _SIG = types.int32(types.int64, types.int64, types.int64, types.int32, types.int32, types.float64)
 
-
-@cfunc(_SIG, cache=True)
-def collide_mesh_mesh(m, d, con, g1, g2, margin):
-    return collide(0, m, d, con, g1, g2, margin)
-
-
-@cfunc(_SIG, cache=True)
-def collide_mesh_sdf(m, d, con, g1, g2, margin):
-    return collide(1, m, d, con, g1, g2, margin)
+# One body per slot of ``layout.SLOTS``; the constant is the slot's index there, which picks the
+# original function ``collide`` falls back on. numba caches each body's cfunc by its own name.
+_MESH_MESH, _MESH_SDF, _SDF_SDF, _SPHERE_MESH, _CAPSULE_MESH, _CYLINDER_MESH, _BOX_MESH = (
+    SLOTS.index(k) for k in ((abi.GEOM_MESH, abi.GEOM_MESH), (abi.GEOM_MESH, abi.GEOM_SDF), (abi.GEOM_SDF, abi.GEOM_SDF),
+                             (cp.SPHERE, abi.GEOM_MESH), (cp.CAPSULE, abi.GEOM_MESH), (cp.CYLINDER, abi.GEOM_MESH),
+                             (cp.BOX, abi.GEOM_MESH)))
 
 
-@cfunc(_SIG, cache=True)
-def collide_sdf_sdf(m, d, con, g1, g2, margin):
-    return collide(2, m, d, con, g1, g2, margin)
+def _mesh_mesh(m, d, con, g1, g2, margin):
+    return collide(_MESH_MESH, m, d, con, g1, g2, margin)
 
 
-@cfunc(_SIG, cache=True)
-def collide_sphere_mesh(m, d, con, g1, g2, margin):
-    return collide(3, m, d, con, g1, g2, margin)
+def _mesh_sdf(m, d, con, g1, g2, margin):
+    return collide(_MESH_SDF, m, d, con, g1, g2, margin)
 
 
-@cfunc(_SIG, cache=True)
-def collide_capsule_mesh(m, d, con, g1, g2, margin):
-    return collide(4, m, d, con, g1, g2, margin)
+def _sdf_sdf(m, d, con, g1, g2, margin):
+    return collide(_SDF_SDF, m, d, con, g1, g2, margin)
 
 
-@cfunc(_SIG, cache=True)
-def collide_cylinder_mesh(m, d, con, g1, g2, margin):
-    return collide(5, m, d, con, g1, g2, margin)
+def _sphere_mesh(m, d, con, g1, g2, margin):
+    return collide(_SPHERE_MESH, m, d, con, g1, g2, margin)
 
 
-@cfunc(_SIG, cache=True)
-def collide_box_mesh(m, d, con, g1, g2, margin):
-    return collide(6, m, d, con, g1, g2, margin)
+def _capsule_mesh(m, d, con, g1, g2, margin):
+    return collide(_CAPSULE_MESH, m, d, con, g1, g2, margin)
 
 
-CFUNCS = (collide_mesh_mesh, collide_mesh_sdf, collide_sdf_sdf,
-          collide_sphere_mesh, collide_capsule_mesh, collide_cylinder_mesh, collide_box_mesh)
+def _cylinder_mesh(m, d, con, g1, g2, margin):
+    return collide(_CYLINDER_MESH, m, d, con, g1, g2, margin)
+
+
+def _box_mesh(m, d, con, g1, g2, margin):
+    return collide(_BOX_MESH, m, d, con, g1, g2, margin)
+
+
+COLLISION_TABLE = {  # collision-table slot (geom types, lower first) -> the body of its cfunc
+    SLOTS[_MESH_MESH]: _mesh_mesh,
+    SLOTS[_MESH_SDF]: _mesh_sdf,
+    SLOTS[_SDF_SDF]: _sdf_sdf,
+    SLOTS[_SPHERE_MESH]: _sphere_mesh,
+    SLOTS[_CAPSULE_MESH]: _capsule_mesh,
+    SLOTS[_CYLINDER_MESH]: _cylinder_mesh,
+    SLOTS[_BOX_MESH]: _box_mesh,
+}
+_CFUNCS: dict = {}
+
+
+def cfunc_address(t1: int, t2: int) -> int:
+    """Address of the collision cfunc for geom types ``t1``, ``t2`` (a key of ``COLLISION_TABLE``),
+    compiled (or loaded from numba's cache) on first use, so a scene pays only for its slots."""
+    key = (min(t1, t2), max(t1, t2))
+    if key not in _CFUNCS:
+        _CFUNCS[key] = cfunc(_SIG, cache=True)(COLLISION_TABLE[key])
+    return _CFUNCS[key].address
+
+
+def compiled_address(t1: int, t2: int) -> int:
+    """``cfunc_address`` if that cfunc exists in this process, else 0 (then it is in no table)."""
+    c = _CFUNCS.get((min(t1, t2), max(t1, t2)))
+    return c.address if c is not None else 0

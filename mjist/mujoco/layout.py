@@ -30,7 +30,7 @@ def _offsets(*sizes: int) -> tuple[int, ...]:
 
 # ---- registry root ----------------------------------------------------------------------
 MAX_MODELS = 64
-SLOTS = (  # collision-table slots the hook can take over, in the order of hook.CFUNCS
+SLOTS = (  # collision-table slots the hook can take over (hook.COLLISION_TABLE); the root keeps their originals in this order
     (abi.GEOM_MESH, abi.GEOM_MESH),
     (abi.GEOM_MESH, abi.GEOM_SDF),
     (abi.GEOM_SDF, abi.GEOM_SDF),

@@ -84,22 +84,23 @@ def _sync_table():
         needed |= e.slots
     for s, (t1, t2) in enumerate(SLOTS):
         idx = abi.table_index(t1, t2)
-        ours = hook.CFUNCS[s].address
         if s in needed and s not in _INSTALLED:
-            table[idx] = ours
+            table[idx] = hook.cfunc_address(t1, t2)
             _INSTALLED.add(s)
         elif s not in needed and s in _INSTALLED:
             table[idx] = _ORIGINAL[idx] or None
             _INSTALLED.discard(s)
+    want = any(e.passive for e in _ENTRIES.values())
+    if want == _PASSIVE["installed"]:
+        return
     from . import forces
 
     cb = abi.passive_callback()
-    ours = forces.passive.address
-    want = any(e.passive for e in _ENTRIES.values())
-    if want and not _PASSIVE["installed"]:
+    ours = forces.passive().address
+    if want:
         cb.value = ours
         _PASSIVE["installed"] = True
-    elif not want and _PASSIVE["installed"]:
+    else:
         if (cb.value or 0) == ours:  # someone who replaced ours keeps their callback
             cb.value = _PASSIVE["previous"] or None
         _PASSIVE["installed"] = False
@@ -113,8 +114,8 @@ def _capture_passive() -> None:
         return
     cur = abi.passive_callback().value or 0
     if not _PASSIVE["installed"]:
-        _PASSIVE["previous"] = 0 if cur == forces.passive.address else int(cur)
-    elif cur != forces.passive.address:
+        _PASSIVE["previous"] = 0 if cur == forces.passive().address else int(cur)
+    elif cur != forces.passive().address:
         # someone replaced ours since (e.g. mujoco.set_mjcb_passive): chain theirs, put ours back
         _PASSIVE["previous"] = int(cur)
         _PASSIVE["installed"] = False
@@ -124,7 +125,7 @@ def passive_is_ours() -> bool:
     """Whether ``mjcb_passive`` still holds mjist's callback (a later ``mujoco.set_mjcb_passive`` replaces it)."""
     from . import forces
 
-    return (abi.passive_callback().value or 0) == forces.passive.address
+    return (abi.passive_callback().value or 0) == forces.passive().address
 
 
 def check_slots(slots: set[int]) -> None:
@@ -135,7 +136,7 @@ def check_slots(slots: set[int]) -> None:
         t1, t2 = SLOTS[s]
         idx = abi.table_index(t1, t2)
         cur = int(table[idx] or 0)
-        if cur not in (_ORIGINAL[idx], hook.CFUNCS[s].address):
+        if cur not in (_ORIGINAL[idx], hook.compiled_address(t1, t2)):
             raise RuntimeError(
                 f"mjCOLLISIONFUNC[{t1}][{t2}] holds a function that is neither MuJoCo's nor mjist's "
                 f"(0x{cur:x}): another library replaced it; detach that library first, mjist will not chain it"

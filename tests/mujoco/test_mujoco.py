@@ -93,7 +93,7 @@ def test_attach_detach_restores_the_table(comb_file, cache):
     h = A.attach(m, cache_dir=cache)
     table = mjabi.collision_table()
     idx = mjabi.table_index(mjabi.GEOM_MESH, mjabi.GEOM_MESH)
-    assert table[idx] == registry.hook.CFUNCS[0].address
+    assert table[idx] == registry.hook.cfunc_address(*registry.SLOTS[0])
     assert h.attached and len(h.pairs) == 1 and h.pairs[0].cap == 4
     h.detach()
     assert registry.table_is_original() and not h.attached
@@ -378,6 +378,34 @@ def test_tree_cache_hit_and_corrupt_entry_rebuilt(comb_file, tmp_path):
         h = A.attach(m, cache_dir=tmp_path)
     h.detach()
     assert mjist.load_tree(files[0]).num_leaves > 0
+
+
+def test_prebuilt_trees_are_found_read_only(comb_file, tmp_path, monkeypatch):
+    from mjist import cache as tree_cache
+
+    m = _model(comb_file)
+    shipped, fresh = tmp_path / "shipped", tmp_path / "fresh"
+    A.attach(m, cache_dir=shipped).detach()
+    monkeypatch.setattr(tree_cache, "PREBUILT", [str(shipped)])
+    h = A.attach(m, cache_dir=fresh)
+    h.detach()
+    assert h.cache_hits == 1 and not fresh.exists()  # loaded from the prebuilt folder, nothing built or written
+    tree = next(shipped.glob("*.ist.npz"))
+    tree.write_bytes(b"not a tree")
+    with pytest.warns(RuntimeWarning, match="rebuilding cached tree"):
+        h = A.attach(m, cache_dir=fresh)
+    h.detach()
+    assert h.cache_hits == 0 and (fresh / tree.name).exists() and tree.read_bytes() == b"not a tree"
+
+
+def test_bundled_closure_scene_ships_its_trees(tmp_path):
+    """The wheel carries the closure scene's trees (models/trees), so a first ``mjist demo`` builds none."""
+    from mjist.jaw import BUNDLED
+
+    h = A.attach(mujoco.MjModel.from_xml_path(str(BUNDLED / "jaw_closure.xml")), cache_dir=tmp_path)
+    h.detach()
+    assert h.cache_hits == 2, "models/trees no longer matches the meshes or the builder: run python scripts/make_jaws.py --trees"
+    assert not any(tmp_path.iterdir())  # the exit directions were shipped too
 
 
 def test_state_changes_speed_not_answers(comb_file, cache):
