@@ -306,7 +306,7 @@ def _walk(S, f, px, py, pz, out):
 
 
 @njit(cache=True)
-def _to_b(xf, x, y, z):
+def to_b(xf, x, y, z):
     """A point of A's frame in B's frame: R^T (p - t)."""
     px, py, pz = x - xf[9], y - xf[10], z - xf[11]
     return (xf[0] * px + xf[3] * py + xf[6] * pz, xf[1] * px + xf[4] * py + xf[7] * pz,
@@ -330,7 +330,7 @@ def _on_b(SB, xf, x, y, z, stack, within, b, f):
     """``b`` ← B's closest point to ``(x, y, z)`` (known within ``within``; walked to from B's
     face ``f`` when ``f`` ≥ 0) and B's outward direction there, in A's frame. Returns the face
     (-1: a query failed)."""
-    bx, by, bz = _to_b(xf, x, y, z)
+    bx, by, bz = to_b(xf, x, y, z)
     if f >= 0:
         f = _walk(SB, f, bx, by, bz, b)
     else:
@@ -354,7 +354,7 @@ def _depths(SA, SB, xf, x, y, z, within, stack, out):
     if _near(SA, x, y, z, stack, within, out) < 0:
         return np.nan, np.nan
     da = -out[0]
-    bx, by, bz = _to_b(xf, x, y, z)
+    bx, by, bz = to_b(xf, x, y, z)
     if _near(SB, bx, by, bz, stack, within, out) < 0:
         return np.nan, np.nan
     return da, -out[0]

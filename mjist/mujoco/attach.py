@@ -25,6 +25,7 @@ from .config import (
     HUNT_CROSSLEY_ALPHA,
     PENALTY_NORMAL_CLIMB,
     SDF_OCTREE_DEPTH,
+    SURFACE_HOLD,
     Config,
     read_config,
 )
@@ -186,7 +187,7 @@ def _tree_tables(model, handle: Handle, slot_of: dict, cache_dir=None) -> tuple[
     ns = max([stack_size(a, b) for a in packed for b in packed] + [stack_size(a) for a in packed] + [2])
     arrays = {"gslot": gslot, "trees": tree_tab, "packed": packed, "exits": exits, "by_mesh": by_mesh, "stack": ns,
               "cap": np.zeros(nman * nman, np.int64), "offset": np.zeros(nman * nman, np.float64),
-              "eps": np.zeros(nman * nman, np.float64)}
+              "eps": np.zeros(nman * nman, np.float64), "hold": np.zeros(nman * nman, np.float64)}
     return arrays, set()
 
 
@@ -232,7 +233,7 @@ def _pair_tables(model, cfg: Config, handle: Handle, pairs, slot_of: dict, gap: 
     from . import registry
 
     nman = len(slot_of)
-    cap, off, eps_pair = arrays["cap"], arrays["offset"], arrays["eps"]
+    cap, off, eps_pair, hold = arrays["cap"], arrays["offset"], arrays["eps"], arrays["hold"]
     slots = set()
     for a, b in pairs:
         c = _pair_cap(model, a, b, cfg)
@@ -247,6 +248,9 @@ def _pair_tables(model, cfg: Config, handle: Handle, pairs, slot_of: dict, gap: 
         cap[ka * nman + kb] = cap[kb * nman + ka] = c
         off[ka * nman + kb] = off[kb * nman + ka] = o
         eps_pair[ka * nman + kb] = eps_pair[kb * nman + ka] = eps
+        if cfg.narrowphase == "surface" and 0 < c <= layout.KP:
+            h = SURFACE_HOLD * eps if cfg.surface_hold is None else cfg.surface_hold
+            hold[ka * nman + kb] = hold[kb * nman + ka] = h
         slots.add(registry.slot_of(model.geom_type[a], model.geom_type[b]))
         handle.pairs.append(PairInfo(geom_name(model, a), geom_name(model, b), (a, b), max(c, 0), o, eps, cfg.mode))
     return slots
@@ -316,7 +320,7 @@ def _write_words(E, model, cfg: Config, arrays: dict, off_d: dict, npen: int, nc
     """The model entry the cfuncs read (``layout.E_*``)."""
     L = layout
     addr = {L.E_GSLOT: "gslot", L.E_CAP: "cap", L.E_TREES: "trees", L.E_OFFSET: "offset", L.E_KEYS: "keys",
-            L.E_ISTATE: "istate", L.E_FSTATE: "fstate", L.E_COUNT: "counters", L.E_EPS: "eps", L.E_GPRIM: "gprim",
+            L.E_ISTATE: "istate", L.E_FSTATE: "fstate", L.E_COUNT: "counters", L.E_EPS: "eps", L.E_HOLD: "hold", L.E_GPRIM: "gprim",
             L.E_PRIM: "prim", L.E_PCAP: "pcap", L.E_POFF: "poff", L.E_PEN: "pen", L.E_CPL: "cpl", L.E_POUT: "pout",
             L.E_SURF: "surf"}
     for word, name in addr.items():

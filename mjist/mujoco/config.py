@@ -16,6 +16,7 @@ can be overridden by ``attach`` keyword arguments:
       <text    name="mjist_primitives"  data="ist"/>     <!-- or native: hull contacts -->
       <text    name="mjist_narrowphase" data="spheres"/> <!-- or surface: distances of the meshes -->
       <numeric name="mjist_surface_groups" data="8"/>   <!-- groups measured on the meshes per call -->
+      <numeric name="mjist_surface_hold" data="0"/>     <!-- metres; default 0.5 % of ε1+ε2, 0: measure every call -->
     </custom>
 """
 from __future__ import annotations
@@ -37,6 +38,12 @@ PENALTY_NORMAL_CLIMB = 2  # penalty normals from the leaf pair's ancestors 2 lev
 HUNT_CROSSLEY_ALPHA = 2.0  # s/m: damping = α·stiffness (force ∝ depth·velocity, zero at first touch)
 DEFAULT_COUPLING = (2000.0, None, 2.0, None)  # k_t N/m, c_t N·s/m, k_r N·m/rad, c_r N·m·s/rad (None: critical)
 _TRUE = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
+# surface contacts are held (their depths moved with the pose, first order) while B stays within
+# this fraction of ε1+ε2 of where they were measured: more holds a resting pair over more of its
+# motion (fewer measurements, no contact set flipping under micrometre jitter), less sees sooner a
+# spot that comes into contact while they are held (at most the hold late) and keeps the depths'
+# second-order error (hold² × curvature) smaller
+SURFACE_HOLD = 0.005
 SDF_OCTREE_DEPTH = 1  # native octree kept minimal for mesh-backed sdf geoms the IST takes over
 
 
@@ -66,6 +73,7 @@ class Config:
     # first: each costs tens of µs, and more find more of the places that touch at once
     # (penalty forces take every group's overlap depth, see hook._surface_penalty)
     surface_groups: int = 8
+    surface_hold: float | None = None  # metres; None: SURFACE_HOLD × (ε1+ε2); 0: measured every call
 
     def validate(self) -> "Config":
         if self.mode not in _MODES:
@@ -122,6 +130,9 @@ class Config:
         if not 1 <= int(self.surface_groups) <= int(self.candidates):
             raise ConfigError(f"mjist_surface_groups={self.surface_groups} must be between 1 and mjist_candidates "
                               f"({self.candidates})")
+        if self.surface_hold is not None and not (math.isfinite(self.surface_hold) and self.surface_hold >= 0):
+            raise ConfigError(f"mjist_surface_hold={self.surface_hold} must be a distance ≥ 0 in metres "
+                              "(0 measures the surfaces on every call)")
         return self
 
 
@@ -137,6 +148,7 @@ _KEYS = {
     "mjist_state_slots": ("state_slots", "numeric"),
     "mjist_candidates": ("candidates", "numeric"),
     "mjist_surface_groups": ("surface_groups", "numeric"),
+    "mjist_surface_hold": ("surface_hold", "numeric"),
     "mjist_branching": ("branching", "numeric"),
     "mjist_seed": ("seed", "numeric"),
     "mjist_primitives": ("primitives", "text"),

@@ -19,7 +19,10 @@ With ``mjist_narrowphase='surface'`` the threshold of 3 is ``margin + ε1 + ε2`
 pair whose surfaces can be within ``margin`` of each other lies in a group below it), and
 the distance, point and normal of the deepest ``mjist_surface_groups`` groups come from the
 meshes themselves (``query.narrow``: ``geometry.surface.local_distance`` started at the
-group's deepest leaf pair) before 4. The penalty forces (``forces.py``) call ``pair_contacts``
+group's deepest leaf pair) before 4. Those contacts are held: while B stays within
+``mjist_surface_hold`` of the pose they were measured at, a call moves them with B instead of
+measuring again (``_held_contacts``), so a resting pair keeps the same contacts with smoothly
+changing depths and settles instead of flipping between descents' answers. The penalty forces (``forces.py``) call ``pair_contacts``
 too, with ``soft``: every group's overlap depth at its blended point (``_surface_penalty``),
 continuous in the pose where a descent's answer is not.
 
@@ -30,8 +33,9 @@ gets one contact from a backtracking distance query, whatever ``margin`` (``dist
 Scratch memory comes from MuJoCo's own per-``mjData`` stack (``mj_stackAllocByte``), the
 coherence state from a per-model table of (MjData, pair) slots claimed with an atomic
 compare-and-swap, so several MjData on several threads never share anything writable.
-The state only prunes work: every answer equals a fresh query's (up to exact ties), so
-rollouts are deterministic whatever the threads. Nothing here raises; problems are counted.
+The state only prunes work: every answer equals a fresh query's (up to exact ties), except
+held surface contacts, which follow the MjData's own trajectory; either way rollouts are
+deterministic whatever the threads. Nothing here raises; problems are counted.
 """
 from __future__ import annotations
 
@@ -55,6 +59,7 @@ from .layout import (
     C_FALLBACK,
     C_FRONT,
     C_GROUPS,
+    C_HELD,
     C_NOSTACK,
     C_PRIM_CALLS,
     C_PRIM_CONTACTS,
@@ -71,6 +76,7 @@ from .layout import (
     E_FSTATE,
     E_GPRIM,
     E_GSLOT,
+    E_HOLD,
     E_ISTATE,
     E_KEYS,
     E_MARK,
@@ -103,6 +109,10 @@ from .layout import (
     F_FT0,
     F_FTHR,
     F_FXF,
+    F_HC,
+    F_HN,
+    F_HOK,
+    F_HXF,
     F_LOK,
     F_LXF,
     F_MARGIN,
@@ -112,6 +122,11 @@ from .layout import (
     F_REF,
     F_TIME,
     FW,
+    H_B,
+    H_DIST,
+    H_NORMAL,
+    H_POINT,
+    HOLD_W,
     I_FRONT,
     I_NFRONT,
     I_NPREV,
@@ -320,6 +335,11 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
             count[C_SKIPPED] += 1
             fst[F_NPN] = 0.0
             return 0
+    hold = carray(abi.f64_ptr(E[E_HOLD]), nman * nman)[p] if surface and not soft else 0.0
+    if hold > 0.0 and fst[F_HOK] > 0.0 and tv.motion_bound(fst[F_HXF:F_HXF + 12], xf, Nb[0, 0:3], Nb[0, 3]) <= hold:
+        count[C_HELD] += 1
+        return _held_contacts(fst, xf, Pa, margin, con, cap)
+    fst[F_HOK] = 0.0
     n, code, use_front = _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, pair, count)
     if code != tv.OK:
         ist[I_NPREV] = 0
@@ -345,6 +365,8 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
         else:
             k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
                                   scratch, count)
+            if hold > 0.0:
+                _hold(fst, xf, Pa, con, k)
         if k == 0:
             return 0
     else:
@@ -356,6 +378,65 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
     ist[I_PAIR + 1] = cand[chosen[0], 3]
     count[C_CONTACT_CALLS] += 1
     count[C_CONTACTS] += k
+    return k
+
+
+@njit(cache=True)
+def _hold(fst, xf, Pa, con, k):
+    """Keep the ``k`` surface contacts just written to ``con`` (at most ``KP``) in A's frame, with
+    B's surface point in B's frame and the pose ``xf`` they were measured at (``_held_contacts``)."""
+    rows = carray(abi.f64_ptr(con), (max(k, 1), abi.PRECONTACT_DOUBLES))
+    hc = fst[F_HC:F_HC + HOLD_W * KP].reshape((KP, HOLD_W))
+    for j in range(k):
+        row = rows[j]
+        h = hc[j]
+        h[H_DIST] = row[0]
+        for r in range(3):  # world -> A's frame: Ra^T (x - ta)
+            h[H_POINT + r] = (Pa[0, r] * (row[1] - Pa[0, 3]) + Pa[1, r] * (row[2] - Pa[1, 3])
+                              + Pa[2, r] * (row[3] - Pa[2, 3]))
+            h[H_NORMAL + r] = Pa[0, r] * row[4] + Pa[1, r] * row[5] + Pa[2, r] * row[6]
+        # B's point: the contact point is midway between A's closest point and it, along the normal
+        bx = h[H_POINT] + 0.5 * row[0] * h[H_NORMAL]
+        by = h[H_POINT + 1] + 0.5 * row[0] * h[H_NORMAL + 1]
+        bz = h[H_POINT + 2] + 0.5 * row[0] * h[H_NORMAL + 2]
+        h[H_B], h[H_B + 1], h[H_B + 2] = sf.to_b(xf, bx, by, bz)
+    for r in range(12):
+        fst[F_HXF + r] = xf[r]
+    fst[F_HN] = k
+    fst[F_HOK] = 1.0
+
+
+@njit(cache=True)
+def _held_contacts(fst, xf, Pa, margin, con, cap):
+    """The held surface contacts moved with B to the pose ``xf``: each keeps its normal and B's
+    surface point (moved with B), and its distance changes by that point's motion along the
+    normal (exact for a plane of A; the error is second order in the motion); the contact point
+    stays midway between B's point and A's plane. Those no longer within ``margin`` are left
+    out. Returns the count written."""
+    out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    hc = fst[F_HC:F_HC + HOLD_W * KP].reshape((KP, HOLD_W))
+    k = 0
+    for j in range(min(int(fst[F_HN]), cap)):
+        h = hc[j]
+        bx, by, bz = h[H_B], h[H_B + 1], h[H_B + 2]
+        dist = h[H_DIST]
+        # B's point now (xf: A <- B) minus where it was, in A's frame
+        mx = xf[0] * bx + xf[1] * by + xf[2] * bz + xf[9] - (h[H_POINT] + 0.5 * dist * h[H_NORMAL])
+        my = xf[3] * bx + xf[4] * by + xf[5] * bz + xf[10] - (h[H_POINT + 1] + 0.5 * dist * h[H_NORMAL + 1])
+        mz = xf[6] * bx + xf[7] * by + xf[8] * bz + xf[11] - (h[H_POINT + 2] + 0.5 * dist * h[H_NORMAL + 2])
+        mn = mx * h[H_NORMAL] + my * h[H_NORMAL + 1] + mz * h[H_NORMAL + 2]
+        if not dist + mn < margin:
+            continue
+        row = out[k]
+        row[0] = dist + mn
+        px = h[H_POINT] + mx - 0.5 * mn * h[H_NORMAL]
+        py = h[H_POINT + 1] + my - 0.5 * mn * h[H_NORMAL + 1]
+        pz = h[H_POINT + 2] + mz - 0.5 * mn * h[H_NORMAL + 2]
+        for r in range(3):
+            row[1 + r] = Pa[r, 0] * px + Pa[r, 1] * py + Pa[r, 2] * pz + Pa[r, 3]
+            row[4 + r] = Pa[r, 0] * h[H_NORMAL] + Pa[r, 1] * h[H_NORMAL + 1] + Pa[r, 2] * h[H_NORMAL + 2]
+            row[7 + r] = 0.0
+        k += 1
     return k
 
 
@@ -462,6 +543,7 @@ def _slot_state(E, d, p, margin, na, nb, is_local, fs_local, count):
         fst[F_FOK] = 0.0
         fst[F_LOK] = 0.0
         fst[F_NPN] = 0.0
+        fst[F_HOK] = 0.0
         fst[F_MARGIN] = margin
     fst[F_TIME] = now
     if ist[I_PAIR] < 0 or ist[I_PAIR] >= na or ist[I_PAIR + 1] < 0 or ist[I_PAIR + 1] >= nb:

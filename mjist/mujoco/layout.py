@@ -70,8 +70,9 @@ ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS
     E_DT_NS,  # the model's timestep in nanoseconds
     E_NARROW,  # mesh–mesh narrow phase: 0 the leaf spheres, else groups measured on the surfaces per call
     E_SURF,  # per k: (surface floats address, ints address, vertices, faces, BVH nodes), see geometry.surface
+    E_HOLD,  # per pair: how far B may move from where its surface contacts were measured before they are again (0: never held)
     E_WORDS,
-) = range(51)
+) = range(52)
 
 # ---- counters (racy increments from several threads: statistics only) ----------------------
 (C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT,
@@ -79,10 +80,11 @@ ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS
  C_STIFF,  # penalty steps whose summed contact stiffness exceeded the explicit stability bound
  C_DISTANCE,  # calls answered with the distance only (mj_geomDistance, distance sensors)
  C_SURFACE,  # contact groups measured on the surfaces (mjist_narrowphase surface)
- N_COUNT) = range(18)
+ C_HELD,  # surface contact calls answered by last measurement's contacts (the pair moved less than the hold)
+ N_COUNT) = range(19)
 COUNTER_NAMES = ("calls", "contact_calls", "contacts", "skipped", "stateless", "no_stack", "bad_pose", "failed",
                  "front_calls", "front_refreshes", "visits", "front_groups", "primitive_calls", "primitive_contacts",
-                 "over_stiffness_budget", "distance_calls", "surface_groups")
+                 "over_stiffness_budget", "distance_calls", "surface_groups", "held_calls")
 
 # ---- state slot of one (MjData, pair) ----------------------------------------------------
 KP = 16  # contact groups remembered for next frame
@@ -91,9 +93,12 @@ NG = 256  # groups of the motion-bounded front
 I_PAIR, I_NPREV, I_NFRONT, I_PREV, I_FRONT, IW = _offsets(2, 1, 1, 4 * KP, 4 * NG)
 # float64 words: distance-skip reference (pose, distance, valid), slot time, front reference
 # (valid, pose, threshold reached, contact threshold), last pose (+ valid), the margin it serves,
-# last step's contacts (count; per contact: point, normal, A's frame) for the side of approach
-F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, F_NPN, F_PN, FW = _offsets(
-    12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1, 1, 6 * KP)
+# last step's contacts (count; per contact: point, normal, A's frame) for the side of approach;
+# the surface contacts held (valid, the pose they were measured at, count; per contact ``HOLD_W``)
+F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, F_NPN, F_PN, F_HOK, F_HXF, F_HN, F_HC, FW = \
+    _offsets(12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1, 1, 6 * KP, 1, 12, 1, 10 * KP)
+# a held surface contact: its distance, point and normal (A's frame), B's surface point (B's frame)
+H_DIST, H_POINT, H_NORMAL, H_B, HOLD_W = _offsets(1, 3, 3, 3)
 
 # ---- slot keys: an MjData address and a pair index in one int64 ---------------------------
 KEY_SHIFT = 48  # user-space addresses fit in 48 bits (x86-64, AArch64)
