@@ -132,7 +132,8 @@ def _cmd_demo(args) -> int:
 
     return _user_errors("demo", lambda: demo.main(
         scene=args.scene, data=args.data, native=args.native, seconds=args.seconds, out=args.out_dir,
-        picture=not args.no_picture, max_error=args.max_error, progress=not args.quiet, pair=_pair_options(args)))
+        picture=not args.no_picture, max_error=args.max_error, progress=not args.quiet, pair=_pair_options(args),
+        narrowphase=args.narrowphase))
 
 
 def _cmd_render(args) -> int:
@@ -296,6 +297,9 @@ def _add_demo(sub) -> None:
     dm.add_argument("--native", action="store_true", help="MuJoCo's own (convex hull) mesh contacts, for comparison")
     dm.add_argument("--seconds", type=float, default=0.6, help="simulated time (default 0.6 s)")
     dm.add_argument("--max-error", type=float, default=None, help="override the scene's mjist_max_error (metres)")
+    dm.add_argument("--narrowphase", choices=("surface", "spheres"), default="surface",
+                    help="surface (default): contacts measured on the meshes, the jaws rest on the true surfaces; "
+                         "spheres: the trees' spheres, a mean surface gap off them")
     dm.add_argument("--out-dir", default="out/demo", help="summary JSON and picture (default out/demo)")
     dm.add_argument("--no-picture", action="store_true", help="skip the rendering")
     dm.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

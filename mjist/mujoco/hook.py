@@ -339,6 +339,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
     if hold > 0.0 and fst[F_HOK] > 0.0 and tv.motion_bound(fst[F_HXF:F_HXF + 12], xf, Nb[0, 0:3], Nb[0, 3]) <= hold:
         count[C_HELD] += 1
         return _held_contacts(fst, xf, Pa, margin, con, cap)
+    nheld = int(fst[F_HN]) if hold > 0.0 and fst[F_HOK] > 0.0 else 0  # measured again below
     fst[F_HOK] = 0.0
     n, code, use_front = _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, pair, count)
     if code != tv.OK:
@@ -364,7 +365,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
                                  count, st, sv, bacc, pair)
         else:
             k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
-                                  scratch, count)
+                                  scratch, count, fst, nheld)
             if hold > 0.0:
                 _hold(fst, xf, Pa, con, k)
         if k == 0:
@@ -759,22 +760,56 @@ def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, s
 
 @njit(cache=True)
 def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap, scratch,
-                      count):
+                      count, fst, nheld):
     """Surface narrow phase: the distances on the meshes of the deepest of the ``n`` groups by
-    the IST (``narrow.deepest``), and those within ``margin`` as contacts into ``con`` (the deepest,
-    then the most spread, one per point). Returns the count; ``chosen[0]`` indexes the deepest
-    in ``cand``."""
+    the IST (``narrow.deepest``), and of the ``nheld`` contacts held until this call, and those
+    within ``margin`` as contacts into ``con`` (the deepest, then the most spread, one per point).
+    Returns the count; ``chosen[0]`` indexes the deepest in ``cand``."""
     sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
     SA = _surface(E, g1)
     SB = _surface(E, g2)
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
     n = nw.deepest(cand, cval, n, E[E_NARROW])
     m = _measure(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count)
+    m = _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, E[E_NCAND], tmp, res, sst, count)
     k = spread(geom, 9, sval, m, cap, chosen, dmin)
     kk = nw.distinct(geom, chosen, k, eps)  # groups whose descents ended at one point give one contact
     for j in range(kk):
         _write_row(out[j], sval[chosen[j]], Pa, geom[chosen[j]])
     return kk
+
+
+@njit(cache=True)
+def _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, nc, tmp, res, sst, count):
+    """The ``nheld`` contacts held until this call, measured again from their points of B (moved
+    with B) and appended after the ``m`` measured groups, so that a measurement continues the
+    contacts it held (the descents from one spot end at one point, and ``narrow.distinct`` keeps
+    one of them) instead of trading them for another set at a pose a micrometre away. Returns
+    the new count."""
+    hc = fst[F_HC:F_HC + HOLD_W * KP].reshape((KP, HOLD_W))
+    for j in range(nheld):
+        if m >= nc:
+            break
+        h = hc[j]
+        bx, by, bz = h[H_B], h[H_B + 1], h[H_B + 2]
+        x = xf[0] * bx + xf[1] * by + xf[2] * bz + xf[9]
+        y = xf[3] * bx + xf[4] * by + xf[5] * bz + xf[10]
+        z = xf[6] * bx + xf[7] * by + xf[8] * bz + xf[11]
+        count[C_SURFACE] += 1
+        if not sf.local_distance(SA, SB, xf, x, y, z, nw.ITERS, eps, nw.TOL * eps, sst, tmp, res):
+            count[C_FALLBACK] += 1
+            continue
+        if not res[0] < margin:
+            continue
+        row = geom[m]
+        for r in range(3):
+            row[r] = res[4 + r]
+            row[9 + r] = res[1 + r]
+        for c in range(4):
+            cand[m, c] = cand[0, c]  # no leaf pair of its own: the first group's keeps the bookkeeping valid
+        sval[m] = res[0]
+        m += 1
+    return m
 
 
 @njit(cache=True)
