@@ -796,19 +796,9 @@ def _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, nc
         y = xf[3] * bx + xf[4] * by + xf[5] * bz + xf[10]
         z = xf[6] * bx + xf[7] * by + xf[8] * bz + xf[11]
         count[C_SURFACE] += 1
-        if not sf.local_distance(SA, SB, xf, x, y, z, nw.ITERS, eps, nw.TOL * eps, sst, tmp, res):
-            count[C_FALLBACK] += 1
-            continue
-        if not res[0] < margin:
-            continue
-        row = geom[m]
-        for r in range(3):
-            row[r] = res[4 + r]
-            row[9 + r] = res[1 + r]
-        for c in range(4):
-            cand[m, c] = cand[0, c]  # no leaf pair of its own: the first group's keeps the bookkeeping valid
-        sval[m] = res[0]
-        m += 1
+        # no leaf pair of its own: the first group's keeps the bookkeeping valid
+        m, ok = nw.measure_from(SA, SB, xf, x, y, z, margin, eps, 0, cand, geom, sval, m, tmp, res, sst)
+        count[C_FALLBACK] += not ok
     return m
 
 

@@ -57,21 +57,29 @@ def measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst):
     for i in range(n):
         g = geom[i]
         tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
-        ok = sf.local_distance(SA, SB, xf, g[9], g[10], g[11], ITERS, eps, TOL * eps, sst, tmp, res)
-        if not ok:
-            failed += 1
-            continue
-        if not res[0] < below:
-            continue
-        row = geom[m]
-        for r in range(3):
-            row[r] = res[4 + r]
-            row[9 + r] = res[1 + r]
-        for c in range(4):
-            cand[m, c] = cand[i, c]
-        sval[m] = res[0]
-        m += 1
+        m, ok = measure_from(SA, SB, xf, g[9], g[10], g[11], below, eps, i, cand, geom, sval, m, tmp, res, sst)
+        failed += not ok
     return m, failed
+
+
+@njit(cache=True)
+def measure_from(SA, SB, xf, x, y, z, below, eps, src, cand, geom, sval, m, tmp, res, sst):
+    """The surfaces' distance measured from the start point ``(x, y, z)`` (A's frame,
+    ``surface.local_distance``) and, when it is below ``below``, kept as row ``m`` of ``geom``
+    (normal at 0:3, point at 9:12), ``sval`` and ``cand`` (a copy of ``cand[src]``). Returns the
+    count of rows kept and whether the surface query succeeded."""
+    if not sf.local_distance(SA, SB, xf, x, y, z, ITERS, eps, TOL * eps, sst, tmp, res):
+        return m, False
+    if not res[0] < below:
+        return m, True
+    row = geom[m]
+    for r in range(3):
+        row[r] = res[4 + r]
+        row[9 + r] = res[1 + r]
+    for c in range(4):
+        cand[m, c] = cand[src, c]
+    sval[m] = res[0]
+    return m + 1, True
 
 
 @njit(cache=True)
