@@ -20,16 +20,20 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
-from mjist.jaw import pair as jawmod
-from mjist.mujoco import attach as A
-
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "scripts"))
+from benchlib import write_table  # noqa: E402
+
+from mjist.jaw import pair as jawmod  # noqa: E402
+from mjist.mujoco import attach as A  # noqa: E402
+
 SHARED = ROOT.parent / "shared" / "data" / "jaw"
 START = -0.002  # slide origin: the mandible 2 mm below its stored pose
 
@@ -168,16 +172,16 @@ def main():
                                                     "mujoco": mujoco.__version__, "defaults": a.defaults, "runs": rows},
                                                    indent=1))
     sdf = next((r["step_us_median_rest"] for r in rows if r["mode"] == "native-sdf"), None)
-    lines = ["| contacts | ε1+ε2 mm | step µs median | at rest | × faster than mesh-SDF at rest | rest past coal's first touch mm "
-             "| coal distance at rest mm | speed at the end mm/s | settled s |", "|---|---|---|---|---|---|---|---|---|"]
+    table = []
     for r in rows:
         ratio = f"{sdf / r['step_us_median_rest']:.1f}" if sdf and r["mode"] != "native-sdf" else "–"
         eb = f"{r['error_bound_mm']:.3f}" if "error_bound_mm" in r else "–"
-        lines.append(f"| {r['mode']} | {eb} | {r['step_us_median']:.1f} | {r['step_us_median_rest']:.1f} | {ratio} | "
-                     f"{r['rest_past_first_touch_mm']:+.4f} | {r['rest_coal_distance_mm']:.4f} | {r['final_speed_mm_s']:.3f} | "
-                     f"{'not' if r['settled_s'] is None else format(r['settled_s'], '.3f')} |")
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    print(out.with_suffix(".md").read_text())
+        table.append([r["mode"], eb, f"{r['step_us_median']:.1f}", f"{r['step_us_median_rest']:.1f}", ratio,
+                      f"{r['rest_past_first_touch_mm']:+.4f}", f"{r['rest_coal_distance_mm']:.4f}",
+                      f"{r['final_speed_mm_s']:.3f}", "not" if r["settled_s"] is None else f"{r['settled_s']:.3f}"])
+    write_table(out.with_suffix(".md"), ["contacts", "ε1+ε2 mm", "step µs median", "at rest", "× faster than mesh-SDF at rest",
+                                         "rest past coal's first touch mm", "coal distance at rest mm",
+                                         "speed at the end mm/s", "settled s"], table)
 
 
 if __name__ == "__main__":

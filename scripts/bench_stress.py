@@ -33,6 +33,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import write_table  # noqa: E402
+
 from mjist.jaw import haptic
 from mjist.jaw.demo import run_closure
 from mjist.jaw.exact import coal_bvh, coal_depth, coal_distance
@@ -224,12 +227,9 @@ def main(argv=None) -> int:
     rows.append(chewing(20.0 if args.quick else 100.0, cache))
     rows.append(attach_cycles(100 if args.quick else 1000, cache))
     (out / "bench_stress.json").write_text(json.dumps(rows, indent=1))
-    lines = ["| case | setting | finite | figures | holds |", "|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(f"| {r['case']} | {r['setting']} | {'yes' if r['finite'] else 'NO'} | {_figures(r)} | "
-                     f"{'yes' if r['ok'] else 'NO'} |")
-    (out / "bench_stress.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_table(out / "bench_stress.md", ["case", "setting", "finite", "figures", "holds"],
+                [[r["case"], r["setting"], "yes" if r["finite"] else "NO", _figures(r), "yes" if r["ok"] else "NO"]
+                 for r in rows])
     return 0
 
 

@@ -31,6 +31,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import write_table  # noqa: E402
+
 SHARED = ROOT.parent / "shared" / "data" / "jaw"
 
 
@@ -130,18 +132,15 @@ def main(argv=None) -> int:
                   f"stored  opening {r['opening_deg']:.2f}°  thickness {r['min_thickness_mm']:.3f}  tips ≤ {r['tip_max_mm']:.3f}  "
                   f"pushes ≤ {r['push_max_mm']:.3f} mm  proofs {'PASS' if r['ok'] else 'FAIL'}", flush=True)
     (out / "bench_wafer.json").write_text(json.dumps(rows, indent=1))
-    lines = ["| pair | trees | time (s) | search vs stored (mm) | opening (°) | min thickness (mm) | tips from wafer, max (mm) "
-             "| seated / pushed / back (mm) | pushed, any step (mm) | printable | seating | holding |", "|" + "---|" * 12]
-    for name, rs in rows.items():
-        for r in rs:
-            lines.append(f"| {name} | {'cached' if r['trees_cached'] else 'built'} | {r['seconds']:.0f} | "
-                         f"{r['search_error_mm']:.3f} | {r['opening_deg']:.2f} | {r['min_thickness_mm']:.3f} | {r['tip_max_mm']:.3f} | "
-                         f"{r['seated_mm']:.3f} / {r['push_max_mm']:.3f} / {r['return_max_mm']:.3f} | "
-                         f"{r['push_max_any_step_mm']:.3f} | "
-                         f"{'pass' if r['printable'] else 'FAIL'} | {'pass' if r['seating'] else 'FAIL'} | "
-                         f"{'pass' if r['holding'] else 'FAIL'} |")
-    (out / "bench_wafer.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    header = ["pair", "trees", "time (s)", "search vs stored (mm)", "opening (°)", "min thickness (mm)",
+              "tips from wafer, max (mm)", "seated / pushed / back (mm)", "pushed, any step (mm)", "printable", "seating",
+              "holding"]
+    write_table(out / "bench_wafer.md", header, [
+        [name, "cached" if r["trees_cached"] else "built", f"{r['seconds']:.0f}", f"{r['search_error_mm']:.3f}",
+         f"{r['opening_deg']:.2f}", f"{r['min_thickness_mm']:.3f}", f"{r['tip_max_mm']:.3f}",
+         f"{r['seated_mm']:.3f} / {r['push_max_mm']:.3f} / {r['return_max_mm']:.3f}", f"{r['push_max_any_step_mm']:.3f}",
+         "pass" if r["printable"] else "FAIL", "pass" if r["seating"] else "FAIL", "pass" if r["holding"] else "FAIL"]
+        for name, rs in rows.items() for r in rs])
     return 0
 
 

@@ -1,4 +1,5 @@
-"""What the benchmark scripts share: trees through mjist's own content-hashed cache.
+"""What the benchmark scripts share: trees through mjist's own content-hashed cache, and the
+Markdown tables they write.
 
 The cache (``$MJIST_CACHE``, else ``~/.cache/mjist``; see ``mjist.cache``) keys a tree on the
 mesh bytes, the build parameters and the builder and tree-format versions, so a benchmark never
@@ -24,3 +25,14 @@ def tree_for(path, *, progress: bool = False, **params):
     if not hit:
         print(f"  built {Path(path).name} {params}: {tree.num_leaves} leaves, ε {tree.error_bound:.4g}", flush=True)
     return tree, mesh, hit
+
+
+def write_table(path, header, rows) -> str:
+    """Write a Markdown table (``header`` cells, then one line of cells per row) to ``path``,
+    print it and return its text."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    text = "\n".join(lines) + "\n"
+    Path(path).write_text(text)
+    print(text, end="")
+    return text
