@@ -306,6 +306,14 @@ def _walk(S, f, px, py, pz, out):
 
 
 @njit(cache=True)
+def to_a(xf, x, y, z):
+    """A point of B's frame in A's frame: R p + t (``xf``: B's pose in A's frame, rotation
+    row-major then translation)."""
+    return (xf[0] * x + xf[1] * y + xf[2] * z + xf[9], xf[3] * x + xf[4] * y + xf[5] * z + xf[10],
+            xf[6] * x + xf[7] * y + xf[8] * z + xf[11])
+
+
+@njit(cache=True)
 def to_b(xf, x, y, z):
     """A point of A's frame in B's frame: R^T (p - t)."""
     px, py, pz = x - xf[9], y - xf[10], z - xf[11]

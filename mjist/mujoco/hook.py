@@ -295,10 +295,16 @@ def _posed(E, d, g1, g2, Pa, Pb, xf):
 def _write_row(row, dist, Pa, g):
     """A contact row of ``con``: ``dist``, then the point (``g[9:12]``) and normal (``g[0:3]``)
     of A's frame in world coordinates; the frame's other axes are MuJoCo's to complete."""
+    _write_row_at(row, dist, Pa, g[9], g[10], g[11], g[0], g[1], g[2])
+
+
+@njit(cache=True)
+def _write_row_at(row, dist, Pa, px, py, pz, nx, ny, nz):
+    """``_write_row`` with the point ``p`` and normal ``n`` (A's frame) given apart."""
     row[0] = dist
     for r in range(3):
-        row[1 + r] = Pa[r, 0] * g[9] + Pa[r, 1] * g[10] + Pa[r, 2] * g[11] + Pa[r, 3]
-        row[4 + r] = Pa[r, 0] * g[0] + Pa[r, 1] * g[1] + Pa[r, 2] * g[2]
+        row[1 + r] = Pa[r, 0] * px + Pa[r, 1] * py + Pa[r, 2] * pz + Pa[r, 3]
+        row[4 + r] = Pa[r, 0] * nx + Pa[r, 1] * ny + Pa[r, 2] * nz
         row[7 + r] = 0.0
 
 
@@ -419,24 +425,18 @@ def _held_contacts(fst, xf, Pa, margin, con, cap):
     k = 0
     for j in range(min(int(fst[F_HN]), cap)):
         h = hc[j]
-        bx, by, bz = h[H_B], h[H_B + 1], h[H_B + 2]
         dist = h[H_DIST]
+        nx, ny, nz = h[H_NORMAL], h[H_NORMAL + 1], h[H_NORMAL + 2]
         # B's point now (xf: A <- B) minus where it was, in A's frame
-        mx = xf[0] * bx + xf[1] * by + xf[2] * bz + xf[9] - (h[H_POINT] + 0.5 * dist * h[H_NORMAL])
-        my = xf[3] * bx + xf[4] * by + xf[5] * bz + xf[10] - (h[H_POINT + 1] + 0.5 * dist * h[H_NORMAL + 1])
-        mz = xf[6] * bx + xf[7] * by + xf[8] * bz + xf[11] - (h[H_POINT + 2] + 0.5 * dist * h[H_NORMAL + 2])
-        mn = mx * h[H_NORMAL] + my * h[H_NORMAL + 1] + mz * h[H_NORMAL + 2]
+        bx, by, bz = sf.to_a(xf, h[H_B], h[H_B + 1], h[H_B + 2])
+        mx = bx - (h[H_POINT] + 0.5 * dist * nx)
+        my = by - (h[H_POINT + 1] + 0.5 * dist * ny)
+        mz = bz - (h[H_POINT + 2] + 0.5 * dist * nz)
+        mn = mx * nx + my * ny + mz * nz
         if not dist + mn < margin:
             continue
-        row = out[k]
-        row[0] = dist + mn
-        px = h[H_POINT] + mx - 0.5 * mn * h[H_NORMAL]
-        py = h[H_POINT + 1] + my - 0.5 * mn * h[H_NORMAL + 1]
-        pz = h[H_POINT + 2] + mz - 0.5 * mn * h[H_NORMAL + 2]
-        for r in range(3):
-            row[1 + r] = Pa[r, 0] * px + Pa[r, 1] * py + Pa[r, 2] * pz + Pa[r, 3]
-            row[4 + r] = Pa[r, 0] * h[H_NORMAL] + Pa[r, 1] * h[H_NORMAL + 1] + Pa[r, 2] * h[H_NORMAL + 2]
-            row[7 + r] = 0.0
+        _write_row_at(out[k], dist + mn, Pa, h[H_POINT] + mx - 0.5 * mn * nx, h[H_POINT + 1] + my - 0.5 * mn * ny,
+                      h[H_POINT + 2] + mz - 0.5 * mn * nz, nx, ny, nz)
         k += 1
     return k
 
@@ -791,10 +791,7 @@ def _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, nc
         if m >= nc:
             break
         h = hc[j]
-        bx, by, bz = h[H_B], h[H_B + 1], h[H_B + 2]
-        x = xf[0] * bx + xf[1] * by + xf[2] * bz + xf[9]
-        y = xf[3] * bx + xf[4] * by + xf[5] * bz + xf[10]
-        z = xf[6] * bx + xf[7] * by + xf[8] * bz + xf[11]
+        x, y, z = sf.to_a(xf, h[H_B], h[H_B + 1], h[H_B + 2])
         count[C_SURFACE] += 1
         # no leaf pair of its own: the first group's keeps the bookkeeping valid
         m, ok = nw.measure_from(SA, SB, xf, x, y, z, margin, eps, 0, cand, geom, sval, m, tmp, res, sst)
