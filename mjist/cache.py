@@ -104,6 +104,47 @@ def cached_tree(vertices, faces, params: dict, *, folder=None, progress: bool = 
 EXITS_VERSION = 1  # bump when traverse.exit_directions changes what it computes
 
 
+GRID_VERSION = 1  # bump when surface.add_grid's defaults or sdfgrid's layout change
+
+
+def cached_grid(vertices, faces, compute, *, folder=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A mesh's narrow-band grid (``geometry.surface.add_grid`` with its default spacing: header,
+    table, faces), from the cache or from ``compute()`` (then stored). Keyed by the mesh's bytes,
+    the default spacing and ``GRID_VERSION``; an unreadable or inconsistent file is recomputed."""
+    from .geometry import sdfgrid
+    from .geometry import surface as sf
+
+    h = hashlib.sha256()
+    for a in (np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64)):
+        h.update(a.tobytes())
+    h.update(f"grid{GRID_VERSION}/{sdfgrid.BRICK}/{sf.GRID_EDGE}/{sf.GRID_BAND}".encode())
+    folder = cache_dir(folder)
+    name = f"{h.hexdigest()[:40]}.grid.npz"
+    path = os.path.join(folder, name)
+    for found in _find(folder, name):
+        try:
+            with np.load(found, allow_pickle=False) as z:
+                H, T, V = z["header"], z["table"], z["values"]
+            dims = H[4:7].astype(np.int64) if H.shape == (sdfgrid.HDR_W,) else None
+            if (dims is not None and H.dtype == np.float64 and np.isfinite(H).all() and H[3] > 0
+                    and T.dtype == np.int32 and T.size == int(np.prod(dims)) and V.dtype == np.int32
+                    and V.size % sdfgrid.NODES == 0 and int(T.max(initial=-1)) < V.size // sdfgrid.NODES
+                    and int(V.min(initial=-1)) >= -1 and int(V.max(initial=-1)) < len(faces)):
+                return np.ascontiguousarray(H), np.ascontiguousarray(T), np.ascontiguousarray(V)
+        except (OSError, ValueError, KeyError):
+            pass
+    H, T, V = compute()
+    try:
+        os.makedirs(folder, exist_ok=True)
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "wb") as f:
+            np.savez(f, header=H, table=T, values=V)
+        os.replace(tmp, path)
+    except OSError:  # a read-only cache only costs the computation next time
+        pass
+    return H, T, V
+
+
 def cached_exits(N, vertices, faces, compute, *, folder=None) -> np.ndarray:
     """The exit directions of packed tree ``N`` over its mesh (``traverse.exit_directions``), from
     the cache or from ``compute()`` (then stored). Keyed by the packed tree's and the mesh's bytes,

@@ -21,12 +21,12 @@ six arrays): the narrow phase's queries are memory-bound.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit, prange
 
-from . import bvh
+from . import bvh, sdfgrid
 
 STACK = bvh.STACK  # traversal stack words a query needs
 NODE_W = 8
@@ -34,18 +34,29 @@ NODE_W = 8
 
 @dataclass
 class Surface:
-    """A surface packed for the kernels (``unpack(s.floats, s.ints, *s.sizes)``)."""
+    """A surface packed for the kernels (``views()``: ``unpack(floats, ints, *sizes, *grid)``)."""
 
     floats: np.ndarray
     ints: np.ndarray
     sizes: tuple[int, int, int]  # vertices, faces, BVH nodes
+    grid: tuple = field(default_factory=sdfgrid.empty)  # header, table, values (``add_grid``)
+    grid_seconds: float = 0.0
 
     @property
     def nbytes(self) -> int:
         return int(self.floats.nbytes + self.ints.nbytes)
 
+    @property
+    def grid_nbytes(self) -> int:
+        return int(sum(a.nbytes for a in self.grid))
+
+    @property
+    def grid_spacing(self) -> float:
+        """The narrow-band grid's node spacing (0: no grid)."""
+        return float(self.grid[0][3])
+
     def views(self):
-        return unpack(self.floats, self.ints, *self.sizes)
+        return unpack(self.floats, self.ints, *self.sizes, *self.grid)
 
 
 def build_surface(V, F) -> Surface:
@@ -95,9 +106,64 @@ def build_surface(V, F) -> Surface:
     return Surface(floats, ints, (nv, nf, m))
 
 
+# a surface's default grid spacing, as a fraction of its median edge length: coarser cells miss
+# a point's nearest face more often near edges and cusps (the query still answers a point of the
+# surface, farther than the closest), finer ones cost quadratically more memory and build time
+GRID_EDGE = 0.4
+GRID_BAND = 2.0  # the band every stored cell lies within, in grid spacings
+
+
+def add_grid(surface: Surface, spacing: float | None = None, band: float | None = None) -> Surface:
+    """Gives ``surface`` its narrow-band grid of nearest faces (``sdfgrid``), which
+    ``local_distance``'s steps query; returns it.
+
+    Parameters
+    ----------
+    surface : Surface
+        ``build_surface``'s result; its grid is replaced.
+    spacing : float, optional
+        Node spacing in the mesh's units; ``GRID_EDGE`` times the median edge length by default.
+    band : float, optional
+        Every point within ``band`` of the surface lies in a stored cell; ``GRID_BAND`` spacings
+        by default.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    TRI = surface.views()[1]
+    if spacing is None:
+        T = TRI.reshape(-1, 3, 3)
+        edges = np.linalg.norm(T - np.roll(T, 1, axis=1), axis=2).ravel()
+        spacing = GRID_EDGE * float(np.median(edges))
+        ext = float(np.max(TRI.reshape(-1, 3).max(axis=0) - TRI.reshape(-1, 3).min(axis=0)))
+        spacing = min(max(spacing, ext / 2000.0), ext / 40.0)  # bounded memory for any tessellation
+    if band is None:
+        band = GRID_BAND * spacing
+    header, table, where = sdfgrid.layout(TRI, float(spacing), float(band))
+    faces = np.empty(where.size * sdfgrid.NODES, np.int32)
+    reach = band + 2.0 * math.sqrt(3.0) * spacing  # a node farther than this is no corner of a cell in the band
+    _fill_grid(surface.views(), header, where, reach * reach, faces)
+    surface.grid = (header, table, faces)
+    surface.grid_seconds = time.perf_counter() - t0
+    return surface
+
+
+@njit(cache=True, parallel=True)
+def _fill_grid(S, header, where, bound2, faces):
+    """Each node of the bricks at ``where``: its nearest face, -1 beyond ``sqrt(bound2)``."""
+    n = sdfgrid.NODES
+    for b in prange(where.shape[0]):
+        stack = np.empty(STACK, np.int64)
+        row = np.empty(7)
+        for k in range(n):
+            px, py, pz = sdfgrid.node_point(header, where[b], k)
+            faces[b * n + k] = _signed_closest_face(S, px, py, pz, stack, bound2, row)
+
+
 @njit(cache=True)
-def unpack(floats, ints, nv, nf, m):
-    """The kernels' views ``(NODE, TRI, ORDER, F, FN, VN, ADJ, POS)`` of a packed surface."""
+def unpack(floats, ints, nv, nf, m, gheader, gtable, gvalues):
+    """The kernels' views ``(NODE, TRI, ORDER, F, FN, VN, ADJ, POS, GH, GT, GV)`` of a packed
+    surface (the last three: its narrow-band grid, ``sdfgrid``)."""
     o = NODE_W * m
     NODE = floats[0:o].reshape((m, NODE_W))
     TRI = floats[o:o + 9 * nf].reshape((nf, 9))
@@ -109,7 +175,7 @@ def unpack(floats, ints, nv, nf, m):
     F = ints[nf:4 * nf].reshape((nf, 3))
     ADJ = ints[4 * nf:7 * nf].reshape((nf, 3))
     POS = ints[7 * nf:8 * nf]
-    return NODE, TRI, ORDER, F, FN, VN, ADJ, POS
+    return NODE, TRI, ORDER, F, FN, VN, ADJ, POS, gheader, gtable, gvalues
 
 
 @njit(cache=True)
@@ -239,7 +305,8 @@ def _signed_closest_face(S, px, py, pz, stack, bound2, out):
     return f
 
 
-REFINE_W = 21  # float64 words of local_distance's temporaries
+ONE_WAY_W = 21  # float64 words of local_distance's temporaries
+REFINE_W = ONE_WAY_W + 19  # ... and of contact_distance's
 WALK_STEPS = 64  # faces a walk moves through at most (it stops earlier at a local closest point)
 RING_MAX = 64  # faces around one vertex a walk looks at, at most
 
@@ -334,12 +401,45 @@ def _near(S, x, y, z, stack, within, out):
 
 
 @njit(cache=True)
+def _grid_closest(S, px, py, pz, out):
+    """``signed_closest`` over the faces nearest to the corners of p's grid cell (``sdfgrid``);
+    returns the face, -1 (``out`` untouched) when the cell is not stored."""
+    F = S[10]
+    o = sdfgrid.cell(S[8], S[9], px, py, pz)
+    if o < 0:
+        return -1
+    best = np.inf
+    bf = -1
+    qx = qy = qz = 0.0
+    feature = 0
+    for c in range(8):
+        f = F[o + sdfgrid.CORNER[c]]
+        if f < 0:
+            return -1  # a corner beyond the band
+        seen = False
+        for cc in range(c):
+            if F[o + sdfgrid.CORNER[cc]] == f:
+                seen = True
+                break
+        if seen:
+            continue
+        d2, x, y, z, feat = _on_face(S, f, px, py, pz)
+        if d2 < best:
+            best, bf, qx, qy, qz, feature = d2, f, x, y, z, feat
+    _signed(S, bf, feature, best, qx, qy, qz, px, py, pz, out)
+    return bf
+
+
+@njit(cache=True)
 def _on_b(SB, xf, x, y, z, stack, within, b, f):
-    """``b`` ← B's closest point to ``(x, y, z)`` (known within ``within``; walked to from B's
-    face ``f`` when ``f`` ≥ 0) and B's outward direction there, in A's frame. Returns the face
-    (-1: a query failed)."""
+    """``b`` ← B's closest point to ``(x, y, z)`` (from B's grid; else walked to from B's face
+    ``f`` when ``f`` ≥ 0, else from the BVH, known within ``within``) and B's outward direction
+    there, in A's frame. Returns the face (-1: a query failed)."""
     bx, by, bz = to_b(xf, x, y, z)
-    if f >= 0:
+    g = _grid_closest(SB, bx, by, bz, b)
+    if g >= 0:
+        f = g
+    elif f >= 0:
         f = _walk(SB, f, bx, by, bz, b)
     else:
         f = _near(SB, bx, by, bz, stack, within, b)
@@ -406,14 +506,15 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
     against A's gradient along B's tangent plane, each projected back onto B, with
     Barzilai–Borwein lengths (the first ``step0`` times the gradient); a step that does not
     lower the distance is retried a quarter as long. ``iters`` surface queries of A at most, or
-    until a step would be shorter than ``tol``. The first projection and query use the BVH; the
-    later ones walk the edge adjacency from the best point's faces (``_walk``: a few faces per
-    step instead of a BVH descent), and the best point's value is then taken from the BVH
-    again, so the answer is a true signed distance however the walks ended. It is the smallest value met: for
+    until a step would be shorter than ``tol``. Each query asks the surface's grid first
+    (``add_grid``: the faces nearest to the point's cell corners, O(1)); beyond the grid's band
+    the first projection and query use the BVH and the later ones walk the edge adjacency from
+    the best point's faces (``_walk``). The best point's value is then taken from the BVH again,
+    so the answer is a true signed distance however the steps ended. It is the smallest value met: for
     separated surfaces a true distance between two surface points (an upper bound of the
     surfaces' distance, equal to it at a local minimum), for overlapping ones minus the depth
     of B's deepest point met inside A. The point is the middle of that point of B and its
-    closest point on A; the normal, A's outward direction there. ``tmp``: ``REFINE_W`` floats.
+    closest point on A; the normal, A's outward direction there. ``tmp``: ``ONE_WAY_W`` floats.
     Returns False when a surface query fails.
     """
     a = tmp[0:7]  # A at the trial point
@@ -430,7 +531,11 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
     alpha = step0
     tn = 0.0
     for it in range(max(iters, 1)):
-        if fa < 0:
+        g = _grid_closest(SA, b[1], b[2], b[3], a)
+        if g >= 0:
+            fa = g
+            walked = True
+        elif fa < 0:
             fa = _near(SA, b[1], b[2], b[3], stack, np.inf, a)
             if fa < 0:
                 return False
@@ -458,16 +563,85 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
         fb = _on_b(SB, xf, yb[0] - alpha * tb[0], yb[1] - alpha * tb[1], yb[2] - alpha * tb[2], stack,
                    alpha * tn, b, fyb)
     if walked:
-        # the walks found local closest points: the best point's value from the whole of A
+        # the grid and the walks found local closest points: the best point's value from the whole of A
         if _near(SA, yb[0], yb[1], yb[2], stack, abs(best), a) < 0:
             return False
         _answer(a, yb[0], yb[1], yb[2], out)
     return True
 
 
+@njit(cache=True)
+def _closest_any(S, x, y, z, stack, out):
+    """``signed_closest`` from the grid, else from the BVH; returns the face (-1: empty surface)."""
+    f = _grid_closest(S, x, y, z, out)
+    if f < 0:
+        f = _near(S, x, y, z, stack, np.inf, out)
+    return f
+
+
+@njit(cache=True)
+def start_distance(SA, SB, xf, x, y, z, stack, tmp):
+    """The surfaces' signed distance near the point ``(x, y, z)`` (A's frame) without a descent:
+    A's signed distance at B's point closest to it, or B's at A's closest point, whichever is
+    smaller (two queries each, from the grids when they hold the points). An upper bound of the
+    minimum ``contact_distance`` finds from there, for ranking where to descend. ``tmp``: 14
+    floats; ``np.inf`` when a query fails."""
+    a = tmp[0:7]
+    b = tmp[7:14]
+    if _on_b(SB, xf, x, y, z, stack, np.inf, b, -1) < 0 or _closest_any(SA, b[1], b[2], b[3], stack, a) < 0:
+        return np.inf
+    v = a[0]
+    if _closest_any(SA, x, y, z, stack, a) < 0:
+        return v
+    bx, by, bz = to_b(xf, a[1], a[2], a[3])
+    if _closest_any(SB, bx, by, bz, stack, b) < 0:
+        return v
+    return min(v, b[0])
+
+
+FORWARD, REVERSE = 1, 2  # contact_distance's ways: B's point in A, A's point in B
+EITHER = FORWARD | REVERSE
+
+
+@njit(cache=True)
+def contact_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out, ways):
+    """``local_distance`` both ways: the deepest point of B in A met from the start
+    (``FORWARD``), and the deepest point of A in B (``REVERSE``: ``local_distance`` of B over A's
+    surface), whichever is deeper (or, apart, nearer), into ``out`` as ``local_distance`` writes
+    it (A's frame, normal from A to B). A cusp of A pressed into a face of B leaves B's points only
+    shallowly inside A, and its own tip deep in B: one way alone misses it. ``ways``: the ways to
+    try (``EITHER``, or one of them: a contact measured again keeps its way, so that two ways
+    that nearly tie cannot trade places from one measurement to the next). Returns the way of
+    the answer, 0 when a surface query failed. ``tmp``: ``REFINE_W`` floats."""
+    best = 0
+    if ways & FORWARD:
+        if not local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
+            return 0
+        best = FORWARD
+    if not ways & REVERSE:
+        return best
+    inv = tmp[ONE_WAY_W:ONE_WAY_W + 12]
+    o2 = tmp[ONE_WAY_W + 12:ONE_WAY_W + 19]
+    for r in range(3):  # A's pose in B's frame: R^T, -R^T t
+        for c in range(3):
+            inv[3 * r + c] = xf[3 * c + r]
+    for r in range(3):
+        inv[9 + r] = -(inv[3 * r] * xf[9] + inv[3 * r + 1] * xf[10] + inv[3 * r + 2] * xf[11])
+    bx, by, bz = to_b(xf, x, y, z)
+    if not local_distance(SB, SA, inv, bx, by, bz, iters, step0, tol, stack, tmp, o2):
+        return 0
+    if best == 0 or o2[0] < out[0]:
+        out[0] = o2[0]
+        out[1], out[2], out[3] = to_a(xf, o2[1], o2[2], o2[3])
+        for r in range(3):  # B's outward direction, turned into A's frame and reversed: from A to B
+            out[4 + r] = -(xf[3 * r] * o2[4] + xf[3 * r + 1] * o2[5] + xf[3 * r + 2] * o2[6])
+        best = REVERSE
+    return best
+
+
 @njit(cache=True, parallel=True)
 def _signed_many(floats, ints, nv, nf, m, P, out):
-    S = unpack(floats, ints, nv, nf, m)
+    S = unpack(floats, ints, nv, nf, m, np.zeros(sdfgrid.HDR_W), np.zeros(0, np.int32), np.zeros(0, np.int32))
     for i in prange(P.shape[0]):
         stack = np.empty(STACK, np.int64)
         row = np.empty(7)

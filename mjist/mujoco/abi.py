@@ -207,6 +207,14 @@ def f64_ptr(typingctx, addr):
 
 
 @intrinsic
+def i32_ptr(typingctx, addr):
+    """``int32*`` from an integer address."""
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], ir.IntType(32).as_pointer())
+    return types.CPointer(types.int32)(types.int64), codegen
+
+
+@intrinsic
 def load_i64(typingctx, addr):
     """The 64-bit word at ``addr``."""
     def codegen(context, builder, signature, args):

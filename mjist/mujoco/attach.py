@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 
 from ..errors import ConfigError
+from ..geometry import sdfgrid
 from ..query import primitive as cp
 from . import abi, layout
 from .config import (
@@ -96,7 +97,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     gap = _load_trees(model, cfg, handle, used, trees, cache_dir, progress)
     slot_of = {g: k for k, g in enumerate(used)}
     arrays, slots = _tree_tables(model, handle, slot_of, cache_dir)
-    _surface_tables(model, cfg, handle, slot_of, arrays)
+    _surface_tables(model, cfg, handle, slot_of, arrays, cache_dir)
     slots |= _pair_tables(model, cfg, handle, pairs, slot_of, gap, arrays)
     slots |= _primitive_tables(model, cfg, handle, prim_pairs, slot_of, gap, arrays)
     pen, cpl, pair_index = _force_tables(model, cfg, handle, slot_of, len(used))
@@ -191,26 +192,33 @@ def _tree_tables(model, handle: Handle, slot_of: dict, cache_dir=None) -> tuple[
     return arrays, set()
 
 
-def _surface_tables(model, cfg: Config, handle: Handle, slot_of: dict, arrays: dict) -> None:
+def _surface_tables(model, cfg: Config, handle: Handle, slot_of: dict, arrays: dict, cache_dir=None) -> None:
     """With ``mjist_narrowphase='surface'``: each managed mesh packed for the surface narrow phase
     (``geometry.surface``, shared by geoms of one mesh) and the per-geom table the cfuncs read."""
     nman = len(slot_of)
-    tab = np.zeros(5 * max(nman, 1), np.int64)
+    tab = np.zeros(layout.SURF_W * max(nman, 1), np.int64)
     by_mesh = arrays.pop("by_mesh")  # built for exit directions not in the cache; kept only when measured on
     arrays.update(surf=tab, surfaces=[])
     if cfg.narrowphase != "surface":
         return
-    from ..geometry.surface import build_surface
+    from ..cache import cached_grid
+    from ..geometry.surface import add_grid, build_surface
 
     t0 = time.perf_counter()
     for g in slot_of:
         mid = int(model.geom_dataid[g])
         if mid not in by_mesh:
             by_mesh[mid] = build_surface(*mesh_of(model, g))
+        s = by_mesh[mid]
+        if s.grid_spacing == 0.0:
+            V, F = mesh_of(model, g)
+            s.grid = cached_grid(V, F, lambda s=s: add_grid(s).grid, folder=cache_dir)
     for g, k in slot_of.items():
         s = by_mesh[int(model.geom_dataid[g])]
         handle.surfaces[geom_name(model, g)] = s
-        tab[5 * k:5 * k + 5] = [s.floats.ctypes.data, s.ints.ctypes.data, *s.sizes]
+        gh, gt, gv = s.grid
+        tab[layout.SURF_W * k:layout.SURF_W * (k + 1)] = [s.floats.ctypes.data, s.ints.ctypes.data, *s.sizes, gh.ctypes.data,
+                                                gt.ctypes.data, gv.ctypes.data, gv.size // sdfgrid.NODES]
     arrays["surfaces"] = list(by_mesh.values())  # kept alive with the entry
     handle.surface_seconds = time.perf_counter() - t0
 

@@ -44,6 +44,7 @@ import math
 import numpy as np
 from numba import carray, cfunc, njit, types
 
+from ..geometry import sdfgrid
 from ..geometry import surface as sf
 from ..query import narrow as nw
 from ..query import primitive as cp
@@ -126,6 +127,7 @@ from .layout import (
     H_DIST,
     H_NORMAL,
     H_POINT,
+    H_WAY,
     HOLD_W,
     I_FRONT,
     I_NFRONT,
@@ -147,6 +149,7 @@ from .layout import (
     SLOTS,
     STACK_RESERVE,
     SURF_F,
+    SURF_W,
     pair_floats,
     pair_ints,
     pair_scratch_bytes,
@@ -373,7 +376,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
             k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
                                   scratch, count, fst, nheld)
             if hold > 0.0:
-                _hold(fst, xf, Pa, con, k)
+                _hold(fst, xf, Pa, con, k, geom, chosen)
         if k == 0:
             return 0
     else:
@@ -389,9 +392,10 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
 
 
 @njit(cache=True)
-def _hold(fst, xf, Pa, con, k):
+def _hold(fst, xf, Pa, con, k, geom, chosen):
     """Keep the ``k`` surface contacts just written to ``con`` (at most ``KP``) in A's frame, with
-    B's surface point in B's frame and the pose ``xf`` they were measured at (``_held_contacts``)."""
+    B's surface point in B's frame, the way each was measured (``geom[chosen[j], narrow.WAY]``)
+    and the pose ``xf`` they were measured at (``_held_contacts``)."""
     rows = carray(abi.f64_ptr(con), (max(k, 1), abi.PRECONTACT_DOUBLES))
     hc = fst[F_HC:F_HC + HOLD_W * KP].reshape((KP, HOLD_W))
     for j in range(k):
@@ -407,6 +411,7 @@ def _hold(fst, xf, Pa, con, k):
         by = h[H_POINT + 1] + 0.5 * row[0] * h[H_NORMAL + 1]
         bz = h[H_POINT + 2] + 0.5 * row[0] * h[H_NORMAL + 2]
         h[H_B], h[H_B + 1], h[H_B + 2] = sf.to_b(xf, bx, by, bz)
+        h[H_WAY] = geom[chosen[j], nw.WAY]
     for r in range(12):
         fst[F_HXF + r] = xf[r]
     fst[F_HN] = k
@@ -720,15 +725,18 @@ def _blend_group(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair, g):
 
 @njit(cache=True)
 def _surface(E, g):
-    """The packed surface (``geometry.surface.unpack``) of managed geom ``g``."""
+    """The packed surface (``geometry.surface.unpack``) of managed geom ``g``, with its grid."""
     k = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])[g]
-    tab = carray(abi.i64_ptr(E[E_SURF]), 5 * E[E_NMAN])
-    nv = tab[5 * k + 2]
-    nf = tab[5 * k + 3]
-    m = tab[5 * k + 4]
-    fl = carray(abi.f64_ptr(tab[5 * k]), sf.float_words(nv, nf, m))
-    it = carray(abi.i64_ptr(tab[5 * k + 1]), sf.int_words(nf))
-    return sf.unpack(fl, it, nv, nf, m)
+    tab = carray(abi.i64_ptr(E[E_SURF]), SURF_W * E[E_NMAN])[SURF_W * k:SURF_W * k + SURF_W]
+    nv = tab[2]
+    nf = tab[3]
+    m = tab[4]
+    fl = carray(abi.f64_ptr(tab[0]), sf.float_words(nv, nf, m))
+    it = carray(abi.i64_ptr(tab[1]), sf.int_words(nf))
+    gh = carray(abi.f64_ptr(tab[5]), sdfgrid.HDR_W)
+    gt = carray(abi.i32_ptr(tab[6]), int(gh[4]) * int(gh[5]) * int(gh[6]))
+    gv = carray(abi.i32_ptr(tab[7]), tab[8] * sdfgrid.NODES)
+    return sf.unpack(fl, it, nv, nf, m, gh, gt, gv)
 
 
 @njit(cache=True)
@@ -769,6 +777,7 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
     SA = _surface(E, g1)
     SB = _surface(E, g2)
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
+    nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst)
     n = nw.deepest(cand, cval, n, E[E_NARROW])
     m = _measure(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count)
     m = _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, E[E_NCAND], tmp, res, sst, count)
@@ -782,7 +791,8 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
 @njit(cache=True)
 def _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, nc, tmp, res, sst, count):
     """The ``nheld`` contacts held until this call, measured again from their points of B (moved
-    with B) and appended after the ``m`` measured groups, so that a measurement continues the
+    with B), each its own way only (``surface.contact_distance``), and appended after the ``m``
+    measured groups, so that a measurement continues the
     contacts it held (the descents from one spot end at one point, and ``narrow.distinct`` keeps
     one of them) instead of trading them for another set at a pose a micrometre away. Returns
     the new count."""
@@ -794,7 +804,8 @@ def _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, nc
         x, y, z = sf.to_a(xf, h[H_B], h[H_B + 1], h[H_B + 2])
         count[C_SURFACE] += 1
         # no leaf pair of its own: the first group's keeps the bookkeeping valid
-        m, ok = nw.measure_from(SA, SB, xf, x, y, z, margin, eps, 0, cand, geom, sval, m, tmp, res, sst)
+        m, ok = nw.measure_from(SA, SB, xf, x, y, z, margin, eps, 0, cand, geom, sval, m, tmp, res, sst,
+                                int(h[H_WAY]) & sf.EITHER or sf.EITHER)  # its own way
         count[C_FALLBACK] += not ok
     return m
 

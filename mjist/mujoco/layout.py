@@ -69,7 +69,7 @@ ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS
     E_NBODY, E_NMOCAP,
     E_DT_NS,  # the model's timestep in nanoseconds
     E_NARROW,  # mesh–mesh narrow phase: 0 the leaf spheres, else groups measured on the surfaces per call
-    E_SURF,  # per k: (surface floats address, ints address, vertices, faces, BVH nodes), see geometry.surface
+    E_SURF,  # per k, SURF_W words: surface floats, ints (addresses), vertices, faces, BVH nodes, grid header, table, values (addresses), bricks; see geometry.surface
     E_HOLD,  # per pair: how far B may move from where its surface contacts were measured before they are again (0: never held)
     E_WORDS,
 ) = range(52)
@@ -91,14 +91,15 @@ KP = 16  # contact groups remembered for next frame
 NG = 256  # groups of the motion-bounded front
 # int64 words: closest leaf pair, remembered groups' count, front's count, the groups, the front
 I_PAIR, I_NPREV, I_NFRONT, I_PREV, I_FRONT, IW = _offsets(2, 1, 1, 4 * KP, 4 * NG)
+# a held surface contact: its distance, point and normal (A's frame), B's surface point (B's frame),
+# the way it was measured (geometry.surface.contact_distance)
+H_DIST, H_POINT, H_NORMAL, H_B, H_WAY, HOLD_W = _offsets(1, 3, 3, 3, 1)
 # float64 words: distance-skip reference (pose, distance, valid), slot time, front reference
 # (valid, pose, threshold reached, contact threshold), last pose (+ valid), the margin it serves,
 # last step's contacts (count; per contact: point, normal, A's frame) for the side of approach;
 # the surface contacts held (valid, the pose they were measured at, count; per contact ``HOLD_W``)
 F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, F_NPN, F_PN, F_HOK, F_HXF, F_HN, F_HC, FW = \
-    _offsets(12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1, 1, 6 * KP, 1, 12, 1, 10 * KP)
-# a held surface contact: its distance, point and normal (A's frame), B's surface point (B's frame)
-H_DIST, H_POINT, H_NORMAL, H_B, HOLD_W = _offsets(1, 3, 3, 3)
+    _offsets(12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1, 1, 6 * KP, 1, 12, 1, HOLD_W * KP)
 
 # ---- slot keys: an MjData address and a pair index in one int64 ---------------------------
 KEY_SHIFT = 48  # user-space addresses fit in 48 bits (x86-64, AArch64)
@@ -139,6 +140,7 @@ STACK_RESERVE = 65536
 POSE_W = 44  # two 4x4 poses and the 3x4 relative transform
 PAIR_GEOM_W = 12  # per candidate: normal, the two ball points, contact point (tv.leaf_geometry)
 SURF_F = sf.REFINE_W + 8  # the surface narrow phase: local_distance's temporaries and answer
+SURF_W = 9  # E_SURF words per managed geom
 PRIM_F = 50  # the primitive path: two poses, transform, the primitive's query point (6)
 PEN_CAP = 64  # contact groups a penalty pair sums at most (the deepest and most spread when more)
 SMALL = 64  # float64 words of the forces' per-call temporaries

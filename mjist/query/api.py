@@ -216,6 +216,7 @@ def _surface_contacts_kernel(
     n_prev[0] = n
     info[1] = n
     info[2] = visits
+    nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst)
     k = nw.deepest(cand, cval, n, k_groups)
     m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, k, margin, eps, geom, sval, tmp, res, sst)
     k = nw.distinct(geom, chosen, spread(geom, 9, sval, m, k_max, chosen, dmin), eps)
@@ -674,5 +675,9 @@ def _surfaces(meshes, trees):
         if m.content_hash != tree.mesh_hash:
             raise ValueError(f"mesh_{name} is not the mesh tree_{name} was built from (content hashes differ): pass the "
                              "mesh given to mjist.build, in the same units and frame")
-        out.append(sf.build_surface(m.vertices, m.faces))
+        s = sf.build_surface(m.vertices, m.faces)
+        from ..cache import cached_grid
+
+        s.grid = cached_grid(m.vertices, m.faces, lambda s=s: sf.add_grid(s).grid)
+        out.append(s)
     return out

@@ -4,7 +4,9 @@ A traversal with threshold ``margin + ε_A + ε_B`` finds every place where the 
 be within ``margin`` of each other (each such place has a leaf pair below that threshold, so it
 lies in a contact group). The groups with the smallest IST distances are then measured on the
 meshes (``geometry.surface.local_distance``, started at the group's deepest leaf pair's contact
-point): a signed distance, a point and a normal of the true surfaces. The MuJoCo hook and
+point) both ways (B's points in A, A's points in B): a signed distance, a point and a normal of
+the true surfaces. Which groups are measured is decided by the surfaces too (``screen``: a few
+grid queries at each group's start point), not by the spheres' distances. The MuJoCo hook and
 ``Query`` share these kernels.
 
 What is certified and what is measured: a measured value is the signed distance of a point of
@@ -27,6 +29,7 @@ ITERS = 30
 TOL = 1e-3
 # contacts closer than this fraction of ε_A + ε_B are one: groups whose descents met at one point
 SAME = 1e-2
+WAY = 3  # the column of a measured group's geometry row that keeps its way (a ball point's, unused then)
 
 
 @njit(cache=True)
@@ -47,6 +50,18 @@ def deepest(cand, cval, n, k):
 
 
 @njit(cache=True)
+def screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst):
+    """Replaces each of the ``n`` groups' IST distance in ``cval`` by the surfaces' distance at
+    its deepest leaf pair's contact point (``surface.start_distance``: a few grid queries, no
+    descent), so that ``deepest`` picks the groups to measure by the meshes rather than by the
+    spheres (whose distances are up to ε_A + ε_B off the surfaces')."""
+    for i in range(n):
+        g = geom[i]
+        tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
+        cval[i] = sf.start_distance(SA, SB, xf, g[9], g[10], g[11], sst, tmp)
+
+
+@njit(cache=True)
 def measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst):
     """Each of the ``n`` groups measured on the surfaces ``SA``, ``SB`` (``surface.unpack``),
     from its deepest leaf pair's contact point. The groups closer than ``below`` are compacted to
@@ -57,18 +72,21 @@ def measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst):
     for i in range(n):
         g = geom[i]
         tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
-        m, ok = measure_from(SA, SB, xf, g[9], g[10], g[11], below, eps, i, cand, geom, sval, m, tmp, res, sst)
+        m, ok = measure_from(SA, SB, xf, g[9], g[10], g[11], below, eps, i, cand, geom, sval, m, tmp, res, sst,
+                             sf.EITHER)
         failed += not ok
     return m, failed
 
 
 @njit(cache=True)
-def measure_from(SA, SB, xf, x, y, z, below, eps, src, cand, geom, sval, m, tmp, res, sst):
+def measure_from(SA, SB, xf, x, y, z, below, eps, src, cand, geom, sval, m, tmp, res, sst, ways):
     """The surfaces' distance measured from the start point ``(x, y, z)`` (A's frame,
-    ``surface.local_distance``) and, when it is below ``below``, kept as row ``m`` of ``geom``
-    (normal at 0:3, point at 9:12), ``sval`` and ``cand`` (a copy of ``cand[src]``). Returns the
-    count of rows kept and whether the surface query succeeded."""
-    if not sf.local_distance(SA, SB, xf, x, y, z, ITERS, eps, TOL * eps, sst, tmp, res):
+    ``surface.contact_distance`` the ``ways`` given) and, when it is below ``below``, kept as row
+    ``m`` of ``geom`` (normal at 0:3, the way it was measured at ``WAY``, point at 9:12), ``sval``
+    and ``cand`` (a copy of ``cand[src]``). Returns the count of rows kept and whether the surface
+    query succeeded."""
+    way = sf.contact_distance(SA, SB, xf, x, y, z, ITERS, eps, TOL * eps, sst, tmp, res, ways)
+    if way == 0:
         return m, False
     if not res[0] < below:
         return m, True
@@ -78,6 +96,7 @@ def measure_from(SA, SB, xf, x, y, z, below, eps, src, cand, geom, sval, m, tmp,
         row[9 + r] = res[1 + r]
     for c in range(4):
         cand[m, c] = cand[src, c]
+    row[WAY] = way
     sval[m] = res[0]
     return m + 1, True
 

@@ -113,23 +113,28 @@ def test_held_contacts_follow_the_pose_exactly_on_flat_tips(comb_file, cache):
     assert nheld == 2 and nmeasured == 0  # the hold here: 0.5 % of ε1+ε2 = 4 µm
     for a, b, dz in zip(held, measured, (0.0, 1e-6, 2.5e-6)):
         assert len(a) == len(b) > 0
-        assert np.allclose(a, b, rtol=0, atol=1e-7)
+        a, b = np.array(a), np.array(b)
+        # depth and height exact; along the flat faces any point of the overlap is as deep, and a
+        # measurement may end at another one than the held contact moved with B
+        assert np.allclose(a[:, [0, 3]], b[:, [0, 3]], rtol=0, atol=1e-7)
+        assert np.allclose(a[:, 1:3], b[:, 1:3], rtol=0, atol=1e-5)
         assert all(r[0] == pytest.approx(-0.0005 - dz, abs=1e-8) for r in a)  # the float32 mesh: nm
 
 
 def test_cbct_slide_at_mujocos_defaults_settles_on_the_true_surfaces():
     """The shared CBCT mandible pushed up a slide into its maxilla (``scripts/bench_slide.py``) at
     MuJoCo's default timestep, solref and solimp, default trees: surface contacts come to rest
-    (below 0.1 mm/s) within 1.5 s, within 0.01 mm of coal's first touch, where sphere contacts
-    rest 0.29 mm short and the surface contacts measured on every call (no hold) cost about 30×
-    as much per step."""
+    (below 0.1 mm/s) within 1.5 s, 0.013 mm past coal's first touch (the default soft contacts'
+    sink under the push, most of it carried by one contact), where sphere contacts rest 0.29 mm
+    short and MuJoCo's mesh-SDF 0.8 mm past; the surface contacts measured on every call (no hold)
+    cost about 30× as much per step."""
     shared_path("jaw", "maxilla.obj")
     slide = load_script("scripts", "bench_slide.py")
     touch, coal = slide.first_touch(slide.SHARED)
     r = slide.run(slide.SHARED, "surface", None, 750, touch, coal, defaults=True)
     assert r["timestep_s"] == 0.002
     assert r["settled_s"] is not None and r["settled_s"] < 1.5
-    assert abs(r["rest_past_first_touch_mm"]) < 0.01
+    assert abs(r["rest_past_first_touch_mm"]) < 0.02
     assert r["hook"]["held_calls"] > 500 and r["hook"]["failed"] == 0
 
 
@@ -166,6 +171,12 @@ def _point_distance(bvh, pose, x):
     tf.setTranslation(pose[:3, :3].T @ (np.asarray(x, float) - pose[:3, 3]))
     return coal.distance(bvh, coal.Transform3s(), coal.Sphere(1e-12), tf, coal.DistanceRequest(),
                          coal.DistanceResult()) + 1e-12
+
+
+def _exact_behind(bvh, P, on, into, y, dist):
+    """``y`` lies on geom ``on`` and inside geom ``into`` by exactly ``-dist`` (coal)."""
+    return (_point_distance(bvh[on], P[on], y) < 1e-9
+            and abs(_point_distance(bvh[into], P[into], y) + dist) < 1e-9)
 
 
 def _check_poses(cache, n, seed):
@@ -205,12 +216,15 @@ def _check_poses(cache, n, seed):
                 assert mujoco.mj_geomDistance(model, d, gmx, gmd, 0.05, None) <= STATED_ERROR
             for j, c in enumerate(cons):
                 ga, gb = int(c.geom[0]), int(c.geom[1])
-                yb = np.array(c.pos) + 0.5 * c.dist * np.array(c.frame[:3])  # the point of geom2's surface
-                assert _point_distance(bvh[gb], P[gb], yb) < 1e-9
-                assert _point_distance(bvh[ga], P[ga], yb) == pytest.approx(-c.dist, abs=1e-9)
+                # a point of one surface inside the other by exactly the depth: geom2's point
+                # (measured into geom1) or geom1's (measured into geom2), half the depth from pos
+                yb = np.array(c.pos) + 0.5 * c.dist * np.array(c.frame[:3])
+                ya = np.array(c.pos) - 0.5 * c.dist * np.array(c.frame[:3])
+                on, into, y = (gb, ga, yb) if _exact_behind(bvh, P, gb, ga, yb, c.dist) else (ga, gb, ya)
+                assert _exact_behind(bvh, P, on, into, y, c.dist)
                 if j == 0:
-                    la = P[ga][:3, :3].T @ (yb - P[ga][:3, 3])
-                    assert winding_numbers(la[None], *meshes[ga])[0] > 0.5  # inside the first mesh
+                    la = P[into][:3, :3].T @ (y - P[into][:3, 3])
+                    assert winding_numbers(la[None], *meshes[into])[0] > 0.5  # inside the other mesh
         assert h.stats()["failed"] == 0
         return touching, separated, missed
     finally:
@@ -231,13 +245,14 @@ def test_jaw_contacts_against_coal_at_many_poses(cache):
 def test_jaw_closure_rests_on_the_true_surfaces(cache):
     """Default trees (ε1+ε2 = 1 mm): the muscles close the jaw onto the teeth within 0.02 mm of
     the true surfaces and 0.05° of the designed hinge angle (spheres: +0.35°, 0.19 mm gap), and
-    it comes to rest: held contacts, measured again from their own points when the pose leaves
-    the hold (measured on every call it wanders by 0.05°, docs/mujoco.md)."""
+    it comes to rest within 1 s: held contacts, measured again from their own points (each its
+    own way) when the pose leaves the hold (measured on every call it wanders by 0.05°,
+    docs/mujoco.md)."""
     from mjist.jaw.demo import run_closure
 
     model, h = A.load_model(SCENE, cache_dir=cache, narrowphase="surface")
     try:
-        res = run_closure(model, seconds=0.6, handle=h)
+        res = run_closure(model, seconds=1.0, handle=h)
     finally:
         h.detach()
     assert res["error_bound_mm"] == pytest.approx(1.0, rel=0.01)

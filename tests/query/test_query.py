@@ -448,10 +448,14 @@ def test_surface_contacts_are_exact_at_their_points():
         assert (c.depths >= -margin).all() and c.depths[0] == c.depths.max()
         if margin == 0.0:
             assert collides
-        # the point of B's surface behind each contact, and its exact depth inside A
+        # behind each contact a point of one surface inside the other by exactly the depth: B's
+        # (measured into A) or A's (measured into B), half the depth from the contact point (trimesh's
+        # distances carry about 1e-9 of rounding)
         yb = c.positions - 0.5 * c.depths[:, None] * c.normals
-        assert np.abs(_sign_dist_inside(mb, Pb, yb)).max() < 1e-9
-        assert np.allclose(_sign_dist_inside(ma, Pa, yb), c.depths, atol=1e-9)
+        ya = c.positions + 0.5 * c.depths[:, None] * c.normals
+        b_in_a = (np.abs(_sign_dist_inside(mb, Pb, yb)) < 1e-9) & np.isclose(_sign_dist_inside(ma, Pa, yb), c.depths, atol=2e-9)
+        a_in_b = (np.abs(_sign_dist_inside(ma, Pa, ya)) < 1e-9) & np.isclose(_sign_dist_inside(mb, Pb, ya), c.depths, atol=2e-9)
+        assert np.all(b_in_a | a_in_b)
         p = np.round(c.positions, 9)
         assert len({tuple(x) for x in p}) == c.count  # one contact per point
     assert n_coll > 5
