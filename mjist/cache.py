@@ -137,8 +137,8 @@ def cached_grid(vertices, faces, compute, *, folder=None) -> tuple[np.ndarray, n
     try:
         os.makedirs(folder, exist_ok=True)
         tmp = f"{path}.{os.getpid()}.tmp"
-        with open(tmp, "wb") as f:
-            np.savez(f, header=H, table=T, values=V)
+        with open(tmp, "wb") as f:  # compressed: the face ids of neighbouring nodes repeat (about 7x smaller)
+            np.savez_compressed(f, header=H, table=T, values=V)
         os.replace(tmp, path)
     except OSError:  # a read-only cache only costs the computation next time
         pass

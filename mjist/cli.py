@@ -295,7 +295,7 @@ def _add_demo(sub) -> None:
     dm.add_argument("--scene", help="MJCF scene (default: models/jaw_closure.xml)")
     dm.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
     dm.add_argument("--native", action="store_true", help="MuJoCo's own (convex hull) mesh contacts, for comparison")
-    dm.add_argument("--seconds", type=float, default=0.6, help="simulated time (default 0.6 s)")
+    dm.add_argument("--seconds", type=float, default=1.0, help="simulated time (default 1 s)")
     dm.add_argument("--max-error", type=float, default=None, help="override the scene's mjist_max_error (metres)")
     dm.add_argument("--narrowphase", choices=("surface", "spheres"), default="surface",
                     help="surface (default): contacts measured on the meshes, the jaws rest on the true surfaces; "

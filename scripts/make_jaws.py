@@ -3,8 +3,8 @@
     python scripts/make_jaws.py            # then: MUJOCO_GL=egl python scripts/render_jaws.py
     python scripts/make_jaws.py --trees    # only models/trees: the closure scene's prebuilt trees
 
-``--trees`` (also done after regenerating the meshes) rebuilds the trees and exit directions the
-bundled closure scene attaches with into ``models/trees``; they ship in the wheel so that a new
+``--trees`` (also done after regenerating the meshes) rebuilds the trees, exit directions and
+surface grids the bundled closure scene attaches with into ``models/trees``; they ship in the wheel so that a new
 user's first ``mjist demo`` loads them (``mjist.cache.prebuilt_folders``). Rerun it whenever the
 builder or the tree format changes: a test says when they no longer match.
 
@@ -48,7 +48,8 @@ def write(out: Path, spacing: float = jawmodel.DEFAULT_SPACING) -> dict:
 
 
 def write_trees(models: Path) -> list[str]:
-    """The bundled closure scene's trees and exit directions, built afresh into ``models/trees``."""
+    """The bundled closure scene's trees, exit directions and surface grids, built afresh into
+    ``models/trees``."""
     import mujoco
 
     import mjist
@@ -57,7 +58,7 @@ def write_trees(models: Path) -> list[str]:
     cache.PREBUILT = []  # build them, do not find the old ones
     with tempfile.TemporaryDirectory() as tmp:
         model = mujoco.MjModel.from_xml_path(str(models / "jaw_closure.xml"))
-        mjist.attach(model, cache_dir=tmp).detach()
+        mjist.attach(model, cache_dir=tmp, narrowphase="surface").detach()  # the demo's: with the grids
         out = models / "trees"
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir()

@@ -109,7 +109,7 @@ def build_surface(V, F) -> Surface:
 # a surface's default grid spacing, as a fraction of its median edge length: coarser cells miss
 # a point's nearest face more often near edges and cusps (the query still answers a point of the
 # surface, farther than the closest), finer ones cost quadratically more memory and build time
-GRID_EDGE = 0.4
+GRID_EDGE = 0.7
 GRID_BAND = 2.0  # the band every stored cell lies within, in grid spacings
 
 

@@ -34,7 +34,7 @@ def _mesh_bvh(model, g):
 
 
 
-def run_closure(model, *, seconds: float = 0.6, handle: Handle | None = None) -> dict:
+def run_closure(model, *, seconds: float = 1.0, handle: Handle | None = None) -> dict:
     """Close the jaw from the ``open`` keyframe with all muscles on; return the figures."""
     d = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, d, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "open"))
@@ -163,7 +163,7 @@ def format_summary(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main(scene=None, data=None, native=False, seconds=0.6, out="out/demo", picture=True, max_error=None, progress=True,
+def main(scene=None, data=None, native=False, seconds=1.0, out="out/demo", picture=True, max_error=None, progress=True,
          pair: dict | None = None, narrowphase: str = "surface") -> int:
     """``mjist demo``: ``data`` is a jaw-pair folder read with ``pair`` options (units, up, hinge,
     repair: ``scenes.pair_scene``). ``narrowphase``: ``surface`` (the jaws rest on the meshes'

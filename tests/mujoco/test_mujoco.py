@@ -402,10 +402,12 @@ def test_bundled_closure_scene_ships_its_trees(tmp_path):
     """The wheel carries the closure scene's trees (models/trees), so a first ``mjist demo`` builds none."""
     from mjist.jaw import BUNDLED
 
-    h = A.attach(mujoco.MjModel.from_xml_path(str(BUNDLED / "jaw_closure.xml")), cache_dir=tmp_path)
+    h = A.attach(mujoco.MjModel.from_xml_path(str(BUNDLED / "jaw_closure.xml")), cache_dir=tmp_path,
+                 narrowphase="surface")
     h.detach()
     assert h.cache_hits == 2, "models/trees no longer matches the meshes or the builder: run python scripts/make_jaws.py --trees"
-    assert not any(tmp_path.iterdir())  # the exit directions were shipped too
+    # the exit directions and the surface grids were shipped too
+    assert not any(tmp_path.iterdir()), "models/trees lacks exits or grids: run python scripts/make_jaws.py --trees"
 
 
 def test_state_changes_speed_not_answers(comb_file, cache):
