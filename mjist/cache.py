@@ -107,6 +107,29 @@ EXITS_VERSION = 1  # bump when traverse.exit_directions changes what it computes
 GRID_VERSION = 1  # bump when surface.add_grid's defaults or sdfgrid's layout change
 
 
+def _entry(arrays, tag: str, suffix: str, folder) -> tuple[str, str]:
+    """The cache folder and the file name of an entry keyed by ``arrays``' bytes and ``tag``."""
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(a.tobytes())
+    h.update(tag.encode())
+    return cache_dir(folder), f"{h.hexdigest()[:40]}{suffix}"
+
+
+def _store(folder: str, name: str, write) -> None:
+    """Writes an entry through ``write(file)`` into a temporary file and moves it into place (a
+    reader sees the whole file or none); a read-only cache only costs the computation next time."""
+    path = os.path.join(folder, name)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except OSError:
+        pass
+
+
 def cached_grid(vertices, faces, compute, *, folder=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A mesh's narrow-band grid (``geometry.surface.add_grid`` with its default spacing: header,
     table, faces), from the cache or from ``compute()`` (then stored). Keyed by the mesh's bytes,
@@ -114,13 +137,8 @@ def cached_grid(vertices, faces, compute, *, folder=None) -> tuple[np.ndarray, n
     from .geometry import sdfgrid
     from .geometry import surface as sf
 
-    h = hashlib.sha256()
-    for a in (np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64)):
-        h.update(a.tobytes())
-    h.update(f"grid{GRID_VERSION}/{sdfgrid.BRICK}/{sf.GRID_EDGE}/{sf.GRID_BAND}".encode())
-    folder = cache_dir(folder)
-    name = f"{h.hexdigest()[:40]}.grid.npz"
-    path = os.path.join(folder, name)
+    folder, name = _entry((np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64)),
+                          f"grid{GRID_VERSION}/{sdfgrid.BRICK}/{sf.GRID_EDGE}/{sf.GRID_BAND}", ".grid.npz", folder)
     for found in _find(folder, name):
         try:
             with np.load(found, allow_pickle=False) as z:
@@ -134,14 +152,8 @@ def cached_grid(vertices, faces, compute, *, folder=None) -> tuple[np.ndarray, n
         except (OSError, ValueError, KeyError):
             pass
     H, T, V = compute()
-    try:
-        os.makedirs(folder, exist_ok=True)
-        tmp = f"{path}.{os.getpid()}.tmp"
-        with open(tmp, "wb") as f:  # compressed: the face ids of neighbouring nodes repeat (about 7x smaller)
-            np.savez_compressed(f, header=H, table=T, values=V)
-        os.replace(tmp, path)
-    except OSError:  # a read-only cache only costs the computation next time
-        pass
+    # compressed: the face ids of neighbouring nodes repeat (about 7x smaller)
+    _store(folder, name, lambda f: np.savez_compressed(f, header=H, table=T, values=V))
     return H, T, V
 
 
@@ -149,14 +161,8 @@ def cached_exits(N, vertices, faces, compute, *, folder=None) -> np.ndarray:
     """The exit directions of packed tree ``N`` over its mesh (``traverse.exit_directions``), from
     the cache or from ``compute()`` (then stored). Keyed by the packed tree's and the mesh's bytes,
     so a tree given by the caller is found too; an unreadable or mismatched file is recomputed."""
-    h = hashlib.sha256()
-    for a in (np.ascontiguousarray(N, np.float64), np.ascontiguousarray(vertices, np.float64),
-              np.ascontiguousarray(faces, np.int64)):
-        h.update(a.tobytes())
-    h.update(f"exits{EXITS_VERSION}".encode())
-    folder = cache_dir(folder)
-    name = f"{h.hexdigest()[:40]}.exits.npy"
-    path = os.path.join(folder, name)
+    folder, name = _entry((np.ascontiguousarray(N, np.float64), np.ascontiguousarray(vertices, np.float64),
+                           np.ascontiguousarray(faces, np.int64)), f"exits{EXITS_VERSION}", ".exits.npy", folder)
     for found in _find(folder, name):
         try:
             X = np.load(found, allow_pickle=False)
@@ -165,12 +171,5 @@ def cached_exits(N, vertices, faces, compute, *, folder=None) -> np.ndarray:
         except (OSError, ValueError):
             pass
     X = np.ascontiguousarray(compute(), np.float64)
-    try:
-        os.makedirs(folder, exist_ok=True)
-        tmp = f"{path}.{os.getpid()}.tmp"
-        with open(tmp, "wb") as f:
-            np.save(f, X)
-        os.replace(tmp, path)
-    except OSError:  # a read-only cache only costs the computation next time
-        pass
+    _store(folder, name, lambda f: np.save(f, X))
     return X
