@@ -5,7 +5,8 @@
 
 The bundled jaw-closure scene (default trees, ``mjist_narrowphase="surface"``), the mandible set
 at random poses near its designed occlusion (hinge -0.3..+0.6°, protrusion and lateral ±0.3 mm;
-seeds 1 and 2, the poses of ``tests/mujoco/test_surface_contacts.py``), one ``mj_forward`` each.
+seeds 1 and 2, the poses of ``tests/mujoco/test_surface_contacts.py``), one ``mj_forward`` each
+on a fresh ``MjData`` (a first touch: no contacts held from the pose before).
 Where coal finds the meshes colliding, a pose without a contact is a miss. The reference depth is
 the deepest vertex of either mesh inside the other (exact point-to-triangle distances, the
 deepest checked against coal's point distance): a lower bound of the true penetration, so
@@ -58,6 +59,7 @@ def run(groups: int, poses: int, seeds=(1, 2)) -> dict:
         for seed in seeds:
             rng = np.random.default_rng(seed)
             for _ in range(poses):
+                d = mujoco.MjData(model)  # each pose a first touch: no contacts held from the last one
                 mujoco.mj_resetDataKeyframe(model, d, occ)
                 d.qpos[:3] += [np.radians(rng.uniform(-0.3, 0.6)), rng.uniform(-3e-4, 3e-4), rng.uniform(-3e-4, 3e-4)]
                 t = time.perf_counter()

@@ -758,9 +758,9 @@ def _surface_scratch(E, scratch, cap):
 
 
 @njit(cache=True)
-def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, count):
+def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, count, ways):
     """``narrow.measure`` with the hook's counters."""
-    m, failed = nw.measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst)
+    m, failed = nw.measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, ways)
     count[C_SURFACE] += n
     count[C_FALLBACK] += failed
     return m
@@ -779,7 +779,10 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
     nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst)
     n = nw.deepest(cand, cval, n, E[E_NARROW])
-    m = _measure(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count)
+    # beside held contacts (a pair that was at rest) the groups one way only: a second way that
+    # nearly ties with the held contacts' trades places with them and kicks the pair
+    ways = sf.FORWARD if nheld > 0 else sf.EITHER
+    m = _measure(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count, ways)
     m = _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, E[E_NCAND], tmp, res, sst, count)
     k = spread(geom, 9, sval, m, cap, chosen, dmin)
     kk = nw.distinct(geom, chosen, k, eps)  # groups whose descents ended at one point give one contact
@@ -858,7 +861,7 @@ def _surface_distance(E, Na, Nb, xf, g1, g2, best, eps, ist, st, sv, cand, cval,
         return -1
     n = nw.deepest(cand, cval, n, E[E_NARROW])
     m = _measure(E, _surface(E, g1), _surface(E, g2), Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res, sst,
-                 count)
+                 count, sf.EITHER)
     return nw.smallest(sval, m)
 
 

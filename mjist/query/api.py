@@ -183,7 +183,7 @@ def _surface_distance_kernel(Na, Nb, SA, SB, Pa, xf, best, eps, split_depth, k_g
     if code != tv.OK:
         return code
     n = nw.deepest(cand, cval, n, k_groups)
-    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res, sst)
+    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res, sst, sf.EITHER)
     j = nw.smallest(sval, m)
     if j < 0:
         return 0
@@ -218,7 +218,7 @@ def _surface_contacts_kernel(
     info[2] = visits
     nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst)
     k = nw.deepest(cand, cval, n, k_groups)
-    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, k, margin, eps, geom, sval, tmp, res, sst)
+    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, k, margin, eps, geom, sval, tmp, res, sst, sf.EITHER)
     k = nw.distinct(geom, chosen, spread(geom, 9, sval, m, k_max, chosen, dmin), eps)
     _write_contacts(Pa, geom, sval, cand, chosen, k, pos, nrm, dep, ids)
     info[0] = k

@@ -62,7 +62,7 @@ def screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst):
 
 
 @njit(cache=True)
-def measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst):
+def measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, ways):
     """Each of the ``n`` groups measured on the surfaces ``SA``, ``SB`` (``surface.unpack``),
     from its deepest leaf pair's contact point. The groups closer than ``below`` are compacted to
     the front of ``cand``, ``geom`` (normal at 0:3, point at 9:12, A's frame) and ``sval``; returns
@@ -73,7 +73,7 @@ def measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst):
         g = geom[i]
         tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
         m, ok = measure_from(SA, SB, xf, g[9], g[10], g[11], below, eps, i, cand, geom, sval, m, tmp, res, sst,
-                             sf.EITHER)
+                             ways)
         failed += not ok
     return m, failed
 
