@@ -431,20 +431,29 @@ def _grid_closest(S, px, py, pz, out):
 
 
 @njit(cache=True)
-def _on_b(SB, xf, x, y, z, stack, within, b, f):
-    """``b`` ← B's closest point to ``(x, y, z)`` (from B's grid; else walked to from B's face
-    ``f`` when ``f`` ≥ 0, else from the BVH, known within ``within``) and B's outward direction
-    there, in A's frame. Returns the face (-1: a query failed)."""
-    bx, by, bz = to_b(xf, x, y, z)
-    g = _grid_closest(SB, bx, by, bz, b)
+def _query(S, x, y, z, f, within, stack, out):
+    """``signed_closest`` of the point on ``S`` into ``out``: from the grid's cell when the grid
+    holds it (``_grid_closest``), else by a walk from face ``f`` when ``f`` ≥ 0, else from the
+    BVH (the closest point known within ``within``). Returns the face (-1: the surface is
+    empty) and whether the answer is the BVH's (the true closest point) rather than a local
+    one."""
+    g = _grid_closest(S, x, y, z, out)
     if g >= 0:
-        f = g
-    elif f >= 0:
-        f = _walk(SB, f, bx, by, bz, b)
-    else:
-        f = _near(SB, bx, by, bz, stack, within, b)
-        if f < 0:
-            return f
+        return g, False
+    if f >= 0:
+        return _walk(S, f, x, y, z, out), False
+    return _near(S, x, y, z, stack, within, out), True
+
+
+@njit(cache=True)
+def _on_b(SB, xf, x, y, z, stack, within, b, f):
+    """``b`` ← B's closest point to ``(x, y, z)`` (``_query``: from B's grid; else walked to
+    from B's face ``f`` when ``f`` ≥ 0, else from the BVH, known within ``within``) and B's
+    outward direction there, in A's frame. Returns the face (-1: a query failed)."""
+    bx, by, bz = to_b(xf, x, y, z)
+    f = _query(SB, bx, by, bz, f, within, stack, b)[0]
+    if f < 0:
+        return f
     cx, cy, cz = b[1], b[2], b[3]
     gx, gy, gz = b[4], b[5], b[6]
     b[1] = xf[0] * cx + xf[1] * cy + xf[2] * cz + xf[9]
@@ -531,17 +540,10 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
     alpha = step0
     tn = 0.0
     for it in range(max(iters, 1)):
-        g = _grid_closest(SA, b[1], b[2], b[3], a)
-        if g >= 0:
-            fa = g
-            walked = True
-        elif fa < 0:
-            fa = _near(SA, b[1], b[2], b[3], stack, np.inf, a)
-            if fa < 0:
-                return False
-        else:
-            fa = _walk(SA, fya, b[1], b[2], b[3], a)
-            walked = True
+        fa, exact = _query(SA, b[1], b[2], b[3], fya if fa >= 0 else -1, np.inf, stack, a)
+        if fa < 0:
+            return False
+        walked |= not exact
         gn = a[4] * b[4] + a[5] * b[5] + a[6] * b[6]
         tx, ty, tz = a[4] - gn * b[4], a[5] - gn * b[5], a[6] - gn * b[6]
         if a[0] < best:
@@ -571,30 +573,22 @@ def local_distance(SA, SB, xf, x, y, z, iters, step0, tol, stack, tmp, out):
 
 
 @njit(cache=True)
-def _closest_any(S, x, y, z, stack, out):
-    """``signed_closest`` from the grid, else from the BVH; returns the face (-1: empty surface)."""
-    f = _grid_closest(S, x, y, z, out)
-    if f < 0:
-        f = _near(S, x, y, z, stack, np.inf, out)
-    return f
-
-
-@njit(cache=True)
 def start_distance(SA, SB, xf, x, y, z, stack, tmp):
     """The surfaces' signed distance near the point ``(x, y, z)`` (A's frame) without a descent:
     A's signed distance at B's point closest to it, or B's at A's closest point, whichever is
-    smaller (two queries each, from the grids when they hold the points). An upper bound of the
-    minimum ``contact_distance`` finds from there, for ranking where to descend. ``tmp``: 14
-    floats; ``np.inf`` when a query fails."""
+    smaller (two queries each, from the grids when they hold the points, else from the BVHs).
+    Every value is a signed distance of a surface point, so an upper bound of the minimum
+    ``contact_distance`` finds from there, for ranking where to descend. ``tmp``: 14 floats;
+    ``np.inf`` when a query fails."""
     a = tmp[0:7]
     b = tmp[7:14]
-    if _on_b(SB, xf, x, y, z, stack, np.inf, b, -1) < 0 or _closest_any(SA, b[1], b[2], b[3], stack, a) < 0:
+    if _on_b(SB, xf, x, y, z, stack, np.inf, b, -1) < 0 or _query(SA, b[1], b[2], b[3], -1, np.inf, stack, a)[0] < 0:
         return np.inf
     v = a[0]
-    if _closest_any(SA, x, y, z, stack, a) < 0:
+    if _query(SA, x, y, z, -1, np.inf, stack, a)[0] < 0:
         return v
     bx, by, bz = to_b(xf, a[1], a[2], a[3])
-    if _closest_any(SB, bx, by, bz, stack, b) < 0:
+    if _query(SB, bx, by, bz, -1, np.inf, stack, b)[0] < 0:
         return v
     return min(v, b[0])
 

@@ -777,8 +777,7 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
     SA = _surface(E, g1)
     SB = _surface(E, g2)
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
-    nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst)
-    n = nw.deepest(cand, cval, n, E[E_NARROW])
+    n = nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, E[E_NARROW], geom, tmp, sst)
     # beside held contacts (a pair that was at rest) the groups one way only: a second way that
     # nearly ties with the held contacts' trades places with them and kicks the pair
     ways = sf.FORWARD if nheld > 0 else sf.EITHER

@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 
 from ..geometry import surface as sf
+from ..query import narrow as nw
 from ..query import primitive as cp
 from ..query import traverse as tv
 from . import abi
@@ -138,7 +139,7 @@ O_F, O_T, O_N, O_DEPTH, O_VOL, O_TIME, O_VH, O_WH, O_PH, O_QH, O_HOK, PO = _offs
 # collision phase in the same step, and running it out aborts the step with an error.
 STACK_RESERVE = 65536
 POSE_W = 44  # two 4x4 poses and the 3x4 relative transform
-PAIR_GEOM_W = 12  # per candidate: normal, the two ball points, contact point (tv.leaf_geometry)
+PAIR_GEOM_W = nw.GEOM_W  # per candidate: normal, the two ball points, contact point (tv.leaf_geometry), way
 SURF_F = sf.REFINE_W + 8  # the surface narrow phase: local_distance's temporaries and answer
 SURF_W = 9  # E_SURF words per managed geom
 PRIM_F = 50  # the primitive path: two poses, transform, the primitive's query point (6)

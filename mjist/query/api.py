@@ -216,8 +216,7 @@ def _surface_contacts_kernel(
     n_prev[0] = n
     info[1] = n
     info[2] = visits
-    nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst)
-    k = nw.deepest(cand, cval, n, k_groups)
+    k = nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, k_groups, geom, tmp, sst)
     m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, k, margin, eps, geom, sval, tmp, res, sst, sf.EITHER)
     k = nw.distinct(geom, chosen, spread(geom, 9, sval, m, k_max, chosen, dmin), eps)
     _write_contacts(Pa, geom, sval, cand, chosen, k, pos, nrm, dep, ids)
@@ -393,7 +392,7 @@ class Query:
         self._cpair = np.full(2, -1, np.int64)  # single-point contact coherence
         self._ppair = np.full(2, -1, np.int64)  # scratch of the volume traversal
         self._mpair = np.full(2, -1, np.int64)  # scratch of the surface distance's group search
-        self._geom = np.zeros((CANDIDATES, 12))
+        self._geom = np.zeros((CANDIDATES, nw.GEOM_W))
         self._dout = np.zeros(9)
         self._cand = np.zeros((CANDIDATES, 4), np.int64)
         self._cval = np.zeros(CANDIDATES)

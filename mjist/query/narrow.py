@@ -29,7 +29,10 @@ ITERS = 30
 TOL = 1e-3
 # contacts closer than this fraction of ε_A + ε_B are one: groups whose descents met at one point
 SAME = 1e-2
-WAY = 3  # the column of a measured group's geometry row that keeps its way (a ball point's, unused then)
+# a group's row: ``traverse.leaf_geometry``'s (normal at 0:3, point at 9:12 become the measured
+# ones), then the way it was measured (``surface.contact_distance``)
+WAY = tv.GEOM_W
+GEOM_W = tv.GEOM_W + 1
 
 
 @njit(cache=True)
@@ -50,15 +53,20 @@ def deepest(cand, cval, n, k):
 
 
 @njit(cache=True)
-def screen(SA, SB, Na, Nb, xf, cand, cval, n, geom, tmp, sst):
-    """Replaces each of the ``n`` groups' IST distance in ``cval`` by the surfaces' distance at
-    its deepest leaf pair's contact point (``surface.start_distance``: a few grid queries, no
-    descent), so that ``deepest`` picks the groups to measure by the meshes rather than by the
-    spheres (whose distances are up to ε_A + ε_B off the surfaces')."""
+def screen(SA, SB, Na, Nb, xf, cand, cval, n, keep, geom, tmp, sst):
+    """Moves the ``keep`` groups of the ``n`` that are deepest by the surfaces to the front of
+    ``cand`` and ``cval`` and returns their count: each group's IST distance in ``cval`` is
+    replaced by the surfaces' distance at its deepest leaf pair's contact point
+    (``surface.start_distance``: a few grid queries, no descent), so that the groups measured
+    are picked by the meshes rather than by the spheres (whose distances are up to ε_A + ε_B
+    off the surfaces'). With ``n`` ≤ ``keep`` all are kept as they are."""
+    if n <= keep:
+        return n
     for i in range(n):
         g = geom[i]
         tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
         cval[i] = sf.start_distance(SA, SB, xf, g[9], g[10], g[11], sst, tmp)
+    return deepest(cand, cval, n, keep)
 
 
 @njit(cache=True)

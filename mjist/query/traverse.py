@@ -385,6 +385,9 @@ def min_distance_backtrack(Na, Nb, xf, st, sv, tol, pair, stop_at):
 # --------------------------------------------------------------------------- leaf pair geometry
 
 
+GEOM_W = 12  # leaf_geometry's row: normal, point on A's ball, point on B's ball, contact point
+
+
 @njit(cache=True)
 def leaf_geometry(Na, Nb, xf, a, b, out):
     """Normal (A→B), point on A's ball, point on B's ball, contact point, in A's frame, into ``out[0:12]``.
