@@ -325,39 +325,39 @@ def _install(model, cfg: Config, handle: Handle, arrays: dict, slots: set, pen, 
 
 
 def _write_words(E, model, cfg: Config, arrays: dict, off_d: dict, npen: int, ncpl: int) -> None:
-    """The model entry the cfuncs read (``layout.E_*``)."""
+    """The model entry the cfuncs read (``layout.Entry``)."""
     L = layout
-    addr = {L.E_GSLOT: "gslot", L.E_CAP: "cap", L.E_TREES: "trees", L.E_OFFSET: "offset", L.E_KEYS: "keys",
-            L.E_ISTATE: "istate", L.E_FSTATE: "fstate", L.E_COUNT: "counters", L.E_EPS: "eps", L.E_HOLD: "hold", L.E_GPRIM: "gprim",
-            L.E_PRIM: "prim", L.E_PCAP: "pcap", L.E_POFF: "poff", L.E_PEN: "pen", L.E_CPL: "cpl", L.E_POUT: "pout",
-            L.E_SURF: "surf"}
+    addr = {L.Entry.GSLOT: "gslot", L.Entry.CAP: "cap", L.Entry.TREES: "trees", L.Entry.OFFSET: "offset", L.Entry.KEYS: "keys",
+            L.Entry.ISTATE: "istate", L.Entry.FSTATE: "fstate", L.Entry.COUNT: "counters", L.Entry.EPS: "eps", L.Entry.HOLD: "hold", L.Entry.GPRIM: "gprim",
+            L.Entry.PRIM: "prim", L.Entry.PCAP: "pcap", L.Entry.POFF: "poff", L.Entry.PEN: "pen", L.Entry.CPL: "cpl", L.Entry.POUT: "pout",
+            L.Entry.SURF: "surf"}
     for word, name in addr.items():
         E[word] = arrays[name].ctypes.data
-    data_field = {L.E_XPOS: "geom_xpos", L.E_XMAT: "geom_xmat", L.E_NARENA: "narena", L.E_PSTACK: "pstack",
-                  L.E_PARENA: "parena", L.E_POOL: "threadpool", L.E_TIME: "time", L.E_QFRCP: "qfrc_passive",
-                  L.E_BXPOS: "xpos", L.E_BXQUAT: "xquat", L.E_BXIPOS: "xipos", L.E_MOCPOS: "mocap_pos",
-                  L.E_MOCQUAT: "mocap_quat"}
+    data_field = {L.Entry.XPOS: "geom_xpos", L.Entry.XMAT: "geom_xmat", L.Entry.NARENA: "narena", L.Entry.PSTACK: "pstack",
+                  L.Entry.PARENA: "parena", L.Entry.POOL: "threadpool", L.Entry.TIME: "time", L.Entry.QFRCP: "qfrc_passive",
+                  L.Entry.BXPOS: "xpos", L.Entry.BXQUAT: "xquat", L.Entry.BXIPOS: "xipos", L.Entry.MOCPOS: "mocap_pos",
+                  L.Entry.MOCQUAT: "mocap_quat"}
     for word, name in data_field.items():
         E[word] = off_d[name]
-    functions = {L.E_ALLOC: "mj_stackAllocByte", L.E_MARK: "mj_markStack", L.E_FREE: "mj_freeStack",
-                 L.E_APPLYFT: "mj_applyFT", L.E_OBJVEL: "mj_objectVelocity"}
+    functions = {L.Entry.ALLOC: "mj_stackAllocByte", L.Entry.MARK: "mj_markStack", L.Entry.FREE: "mj_freeStack",
+                 L.Entry.APPLYFT: "mj_applyFT", L.Entry.OBJVEL: "mj_objectVelocity"}
     for word, name in functions.items():
         E[word] = abi.fn_address(name)
-    E[L.E_NGEOM] = model.ngeom
-    E[L.E_NMAN] = len(arrays["packed"])
-    E[L.E_NSLOT] = int(cfg.state_slots)
-    E[L.E_STACK] = arrays["stack"]
-    E[L.E_NCAND] = int(cfg.candidates)
-    E[L.E_SPLIT] = int(cfg.split_depth)
-    E[L.E_SKIP] = int(bool(cfg.skip))
-    E[L.E_NPRIM] = arrays["nprim"]
-    E[L.E_NUP] = PENALTY_NORMAL_CLIMB if cfg.mode == "penalty" else 0
-    E[L.E_NPEN] = npen
-    E[L.E_NCPL] = ncpl
-    E[L.E_NBODY] = model.nbody
-    E[L.E_NMOCAP] = model.nmocap
-    E[L.E_DT_NS] = int(round(model.opt.timestep * 1e9))
-    E[L.E_NARROW] = int(cfg.surface_groups) if cfg.narrowphase == "surface" else 0
+    E[L.Entry.NGEOM] = model.ngeom
+    E[L.Entry.NMAN] = len(arrays["packed"])
+    E[L.Entry.NSLOT] = int(cfg.state_slots)
+    E[L.Entry.STACK] = arrays["stack"]
+    E[L.Entry.NCAND] = int(cfg.candidates)
+    E[L.Entry.SPLIT] = int(cfg.split_depth)
+    E[L.Entry.SKIP] = int(bool(cfg.skip))
+    E[L.Entry.NPRIM] = arrays["nprim"]
+    E[L.Entry.NUP] = PENALTY_NORMAL_CLIMB if cfg.mode == "penalty" else 0
+    E[L.Entry.NPEN] = npen
+    E[L.Entry.NCPL] = ncpl
+    E[L.Entry.NBODY] = model.nbody
+    E[L.Entry.NMOCAP] = model.nmocap
+    E[L.Entry.DT_NS] = int(round(model.opt.timestep * 1e9))
+    E[L.Entry.NARROW] = int(cfg.surface_groups) if cfg.narrowphase == "surface" else 0
 
 
 def _pair_cap(model, g1: int, g2: int, cfg: Config) -> int:

@@ -42,12 +42,6 @@ from numba import carray, cfunc, njit, types
 from ..query import traverse as tv
 from . import abi, hook
 from .layout import (
-    C_BADPOSE,
-    C_CALLS,
-    C_FALLBACK,
-    C_NOSTACK,
-    C_STIFF,
-    C_VISITS,
     CPL_BODY,
     CPL_COM,
     CPL_CR,
@@ -56,35 +50,7 @@ from .layout import (
     CPL_KT,
     CPL_MOCAP,
     CPL_W,
-    E_ALLOC,
-    E_APPLYFT,
-    E_BXIPOS,
-    E_BXPOS,
-    E_BXQUAT,
-    E_COUNT,
-    E_CPL,
-    E_DT_NS,
-    E_FREE,
-    E_FSTATE,
-    E_MARK,
-    E_MOCPOS,
-    E_MOCQUAT,
-    E_NBODY,
-    E_NCAND,
-    E_NCPL,
-    E_NMAN,
-    E_NMOCAP,
-    E_NPEN,
-    E_NSLOT,
-    E_OBJVEL,
-    E_PEN,
-    E_POUT,
-    E_QFRCP,
-    E_STACK,
-    E_TIME,
-    E_WORDS,
-    E_XMAT,
-    E_XPOS,
+    ENTRY_WORDS,
     F_TIME,
     FW,
     N_COUNT,
@@ -99,23 +65,16 @@ from .layout import (
     O_VH,
     O_VOL,
     O_WH,
-    PEN_B1,
-    PEN_B2,
-    PEN_C,
     PEN_CAP,
-    PEN_G1,
-    PEN_G2,
-    PEN_GROUPS,
-    PEN_K,
-    PEN_KMAX,
-    PEN_LAW,
-    PEN_PAIR,
     PEN_W,
     PO,
     POSE_W,
     ROOT_PASSIVE,
     ROOT_WORDS,
     SMALL,
+    Count,
+    Entry,
+    Pen,
     forces_big_bytes,
     forces_scratch_bytes,
     forces_small_floats,
@@ -196,28 +155,28 @@ def _penalty_pair(E, m, d, row, con, small, big, out):
     the front of groups, backtracking, robust normals) with MuJoCo's contact layout written
     into ``con`` instead of ``mjData.contact``; the volume law runs only when they show overlap.
     """
-    b1 = int(row[PEN_B1])
-    b2 = int(row[PEN_B2])
+    b1 = int(row[Pen.B1])
+    b2 = int(row[Pen.B2])
     for i in range(O_TIME):
         out[i] = 0.0
-    n = hook.pair_contacts(E, m, d, con.ctypes.data, int(row[PEN_G1]), int(row[PEN_G2]), 0.0, int(row[PEN_PAIR]),
-                           int(row[PEN_GROUPS]), big.ctypes.data, True)
+    n = hook.pair_contacts(E, m, d, con.ctypes.data, int(row[Pen.G1]), int(row[Pen.G2]), 0.0, int(row[Pen.PAIR]),
+                           int(row[Pen.GROUPS]), big.ctypes.data, True)
     if n == 0:
         return
     v1 = small[0:6]
     v2 = small[6:12]
-    bx = carray(abi.f64_ptr(abi.load_i64(d + E[E_BXPOS])), 3 * E[E_NBODY])
-    bi = carray(abi.f64_ptr(abi.load_i64(d + E[E_BXIPOS])), 3 * E[E_NBODY])
+    bx = carray(abi.f64_ptr(abi.load_i64(d + E[Entry.BXPOS])), 3 * E[Entry.NBODY])
+    bi = carray(abi.f64_ptr(abi.load_i64(d + E[Entry.BXIPOS])), 3 * E[Entry.NBODY])
     for i in range(6):
         v1[i] = 0.0
     if b1 >= 0:
-        abi.call_object_velocity(E[E_OBJVEL], m, d, OBJ_XBODY, b1, v1.ctypes.data, 0)
-    abi.call_object_velocity(E[E_OBJVEL], m, d, OBJ_XBODY, b2, v2.ctypes.data, 0)
+        abi.call_object_velocity(E[Entry.OBJVEL], m, d, OBJ_XBODY, b1, v1.ctypes.data, 0)
+    abi.call_object_velocity(E[Entry.OBJVEL], m, d, OBJ_XBODY, b2, v2.ctypes.data, 0)
     com = bi[3 * b2:3 * b2 + 3]
     o1 = bx[3 * max(b1, 0):3 * max(b1, 0) + 3]
     o2 = bx[3 * b2:3 * b2 + 3]
     rows = con.reshape((con.shape[0] // abi.PRECONTACT_DOUBLES, abi.PRECONTACT_DOUBLES))
-    if int(row[PEN_LAW]) == CONTACTS:
+    if int(row[Pen.LAW]) == CONTACTS:
         _contacts_law(E, row, rows, n, o1, o2, com, small, out)
     else:
         if not _volume_law(E, d, row, o1, o2, com, small, big, out):
@@ -247,8 +206,8 @@ def _add_force(amount, k, c, v1, o1, v2, o2, com, pnt, nrm, tmp, out):
 @njit(cache=True)
 def _contacts_law(E, row, rows, n, o1, o2, com, small, out):
     """Hunt–Crossley force of each contact group in ``rows[:n]`` summed into ``out``."""
-    k = row[PEN_K]
-    c = row[PEN_C]
+    k = row[Pen.K]
+    c = row[Pen.C]
     v1, v2, pnt, nrm, tmp = small[0:6], small[6:12], small[12:15], small[15:18], small[18:27]
     # stability: each group adds ~k of stiffness along its normal; an explicit step stays
     # stable while the sum is below 4 m_eff/dt² (= 4 K_max): count the steps past it
@@ -256,9 +215,9 @@ def _contacts_law(E, row, rows, n, o1, o2, com, small, out):
     for i in range(n):
         if -rows[i, 0] > 0.0:
             groups += 1
-    if k * groups > 4.0 * row[PEN_KMAX]:
-        count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
-        count[C_STIFF] += 1
+    if k * groups > 4.0 * row[Pen.KMAX]:
+        count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
+        count[Count.OVER_STIFFNESS_BUDGET] += 1
     for i in range(n):
         depth = -rows[i, 0]
         if depth <= 0.0:
@@ -277,15 +236,15 @@ def _volume_law(E, d, row, o1, o2, com, small, big, out):
 
     Returns False when there is no force to apply (bad pose, failed traversal, no overlap).
     """
-    k = row[PEN_K]
-    c = row[PEN_C]
-    g1 = int(row[PEN_G1])
-    g2 = int(row[PEN_G2])
-    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    k = row[Pen.K]
+    c = row[Pen.C]
+    g1 = int(row[Pen.G1])
+    g2 = int(row[Pen.G2])
+    count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
     v1, v2, pnt, nrm, tmp = small[0:6], small[6:12], small[12:15], small[15:18], small[18:27]
     acc = small[40:48]
     Na, Nb = hook.pair_trees(E, g1, g2)
-    ns = E[E_STACK]
+    ns = E[Entry.STACK]
     Pa = big[0:16].reshape((4, 4))
     Pb = big[16:32].reshape((4, 4))
     xf = big[32:44]
@@ -293,17 +252,17 @@ def _volume_law(E, d, row, o1, o2, com, small, big, out):
     iw = carray(abi.i64_ptr(big.ctypes.data + 8 * (POSE_W + ns)), 2 * ns + 2)
     st = iw[0:2 * ns].reshape((ns, 2))
     pair = iw[2 * ns:2 * ns + 2]
-    xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
-    xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
+    xpos = abi.f64_ptr(abi.load_i64(d + E[Entry.XPOS]))
+    xmat = abi.f64_ptr(abi.load_i64(d + E[Entry.XMAT]))
     hook.geom_pose(xpos, xmat, g1, Pa)
     hook.geom_pose(xpos, xmat, g2, Pb)
     if not tv.relative_pose(Pa, Pb, xf):
-        count[C_BADPOSE] += 1
+        count[Count.BAD_POSE] += 1
         return False
     code, visits = tv.penetration(Na, Nb, xf, st, sv, acc, pair)
-    count[C_VISITS] += visits
+    count[Count.VISITS] += visits
     if code != tv.OK:
-        count[C_FALLBACK] += 1
+        count[Count.FAILED] += 1
         return False
     V = acc[0]
     out[O_VOL] = V
@@ -324,18 +283,18 @@ def _apply(E, m, d, b1, b2, com, small, out):
     pnt = small[12:15]
     F = small[27:30]
     T = small[30:33]
-    qfrc = abi.load_i64(d + E[E_QFRCP])
+    qfrc = abi.load_i64(d + E[Entry.QFRCP])
     for r in range(3):
         F[r] = out[O_F + r]
         T[r] = out[O_T + r]
         pnt[r] = com[r]
     if F[0] != 0.0 or F[1] != 0.0 or F[2] != 0.0:
-        abi.call_apply_ft(E[E_APPLYFT], m, d, F.ctypes.data, T.ctypes.data, pnt.ctypes.data, b2, qfrc)
+        abi.call_apply_ft(E[Entry.APPLYFT], m, d, F.ctypes.data, T.ctypes.data, pnt.ctypes.data, b2, qfrc)
         if b1 >= 0:
             for r in range(3):
                 F[r] = -F[r]
                 T[r] = -T[r]
-            abi.call_apply_ft(E[E_APPLYFT], m, d, F.ctypes.data, T.ctypes.data, pnt.ctypes.data, b1, qfrc)
+            abi.call_apply_ft(E[Entry.APPLYFT], m, d, F.ctypes.data, T.ctypes.data, pnt.ctypes.data, b1, qfrc)
 
 
 @njit(cache=True)
@@ -347,10 +306,10 @@ def _coupling(E, m, d, row, f, out, now, fresh):
     ct = row[CPL_CT]
     kr = row[CPL_KR]
     cr = row[CPL_CR]
-    nb = E[E_NBODY]
-    mp = carray(abi.f64_ptr(abi.load_i64(d + E[E_MOCPOS])), 3 * E[E_NMOCAP])
-    mq = carray(abi.f64_ptr(abi.load_i64(d + E[E_MOCQUAT])), 4 * E[E_NMOCAP])
-    bq = carray(abi.f64_ptr(abi.load_i64(d + E[E_BXQUAT])), 4 * nb)
+    nb = E[Entry.NBODY]
+    mp = carray(abi.f64_ptr(abi.load_i64(d + E[Entry.MOCPOS])), 3 * E[Entry.NMOCAP])
+    mq = carray(abi.f64_ptr(abi.load_i64(d + E[Entry.MOCQUAT])), 4 * E[Entry.NMOCAP])
+    bq = carray(abi.f64_ptr(abi.load_i64(d + E[Entry.BXQUAT])), 4 * nb)
     ph = mp[3 * mid:3 * mid + 3]
     # the handle's quaternion as MuJoCo reads it: normalized (a device's integrated orientation
     # drifts off unit length; MuJoCo normalizes mocap_quat for the kinematics but not in place)
@@ -377,7 +336,7 @@ def _coupling(E, m, d, row, f, out, now, fresh):
             out[O_WH + r] = th[r] / dt
             v2 += out[O_VH + r] ** 2
             w2 += out[O_WH + r] ** 2
-        if dt > 1.5 * E[E_DT_NS] * 1e-9 or v2 > VMAX * VMAX or w2 > WMAX * WMAX:
+        if dt > 1.5 * E[Entry.DT_NS] * 1e-9 or v2 > VMAX * VMAX or w2 > WMAX * WMAX:
             for r in range(3):
                 out[O_VH + r] = 0.0
                 out[O_WH + r] = 0.0
@@ -390,8 +349,8 @@ def _coupling(E, m, d, row, f, out, now, fresh):
     # the spring acts between the body's centre of mass and where the handle puts it, so it
     # has no lever arm (a body origin far from the mass would make the coupling unstable)
     vel = f[8:14]
-    abi.call_object_velocity(E[E_OBJVEL], m, d, OBJ_BODY, b, vel.ctypes.data, 0)
-    bi = carray(abi.f64_ptr(abi.load_i64(d + E[E_BXIPOS])), 3 * nb)
+    abi.call_object_velocity(E[Entry.OBJVEL], m, d, OBJ_BODY, b, vel.ctypes.data, 0)
+    bi = carray(abi.f64_ptr(abi.load_i64(d + E[Entry.BXIPOS])), 3 * nb)
     th = f[14:17]
     quat_error(qh, bq[4 * b:4 * b + 4], th)
     F = f[17:20]
@@ -407,28 +366,28 @@ def _coupling(E, m, d, row, f, out, now, fresh):
         T[r] = kr * th[r] + cr * (out[O_WH + r] - vel[r])
         out[O_F + r] = F[r]
         out[O_T + r] = T[r]
-    qfrc = abi.load_i64(d + E[E_QFRCP])
-    abi.call_apply_ft(E[E_APPLYFT], m, d, F.ctypes.data, T.ctypes.data, pt.ctypes.data, b, qfrc)
+    qfrc = abi.load_i64(d + E[Entry.QFRCP])
+    abi.call_apply_ft(E[Entry.APPLYFT], m, d, F.ctypes.data, T.ctypes.data, pt.ctypes.data, b, qfrc)
 
 
 
 @njit(cache=True)
 def apply(E, m, d):
     """All penalty pairs and couplings of one model entry, for one MjData."""
-    npen = E[E_NPEN]
-    ncpl = E[E_NCPL]
-    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
-    ns = E[E_STACK]
-    nc = E[E_NCAND]
+    npen = E[Entry.NPEN]
+    ncpl = E[Entry.NCPL]
+    count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
+    ns = E[Entry.STACK]
+    nc = E[Entry.NCAND]
     need = forces_scratch_bytes(ns, nc)
     if not hook.stack_room(E, d, need):
-        count[C_NOSTACK] += 1
+        count[Count.NO_STACK] += 1
         return
-    nslot = E[E_NSLOT]
-    now = abi.load_f64(d + E[E_TIME])
-    nman = E[E_NMAN]
-    abi.call_with_data(E[E_MARK], d)
-    raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
+    nslot = E[Entry.NSLOT]
+    now = abi.load_f64(d + E[Entry.TIME])
+    nman = E[Entry.NMAN]
+    abi.call_with_data(E[Entry.MARK], d)
+    raw = abi.call_stack_alloc(E[Entry.ALLOC], d, need, 64)
     nsmall = forces_small_floats()
     f = carray(abi.f64_ptr(raw), nsmall)
     con = f[0:PEN_CAP * abi.PRECONTACT_DOUBLES]
@@ -436,13 +395,13 @@ def apply(E, m, d):
     spare = f[nsmall - PO:nsmall]  # stands in for the output row when the slot table is full
     big_addr = raw + ((8 * nsmall + 63) // 64) * 64
     big = carray(abi.f64_ptr(big_addr), forces_big_bytes(ns, nc) // 8)
-    pen = carray(abi.f64_ptr(E[E_PEN]), (max(npen, 1), PEN_W))
-    cpl = carray(abi.f64_ptr(E[E_CPL]), (max(ncpl, 1), CPL_W))
-    pout = carray(abi.f64_ptr(E[E_POUT]), (nslot, PO))
+    pen = carray(abi.f64_ptr(E[Entry.PEN]), (max(npen, 1), PEN_W))
+    cpl = carray(abi.f64_ptr(E[Entry.CPL]), (max(ncpl, 1), CPL_W))
+    pout = carray(abi.f64_ptr(E[Entry.POUT]), (nslot, PO))
     for i in range(npen):
         row = pen[i]
-        count[C_CALLS] += 1
-        s, _ = hook.claim_slot(E, d, int(row[PEN_PAIR]), nslot, 0)  # the hook's own slot: its state is managed there
+        count[Count.CALLS] += 1
+        s, _ = hook.claim_slot(E, d, int(row[Pen.PAIR]), nslot, 0)  # the hook's own slot: its state is managed there
         out = pout[s] if s >= 0 else spare
         _penalty_pair(E, m, d, row, con, small, big, out)
         out[O_TIME] = now
@@ -451,7 +410,7 @@ def apply(E, m, d):
         s, fresh = hook.claim_slot(E, d, nman * nman + i, nslot, 0)
         if s >= 0:
             out = pout[s]
-            fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+            fst = carray(abi.f64_ptr(E[Entry.FSTATE] + 8 * FW * s), FW)
             if not fresh and not (fst[F_TIME] <= now):
                 fresh = True  # a reset or a new MjData at a recycled address
             fst[F_TIME] = now
@@ -460,7 +419,7 @@ def apply(E, m, d):
             fresh = True
         _coupling(E, m, d, row, small, out, now, fresh)
         out[O_TIME] = now
-    abi.call_with_data(E[E_FREE], d)
+    abi.call_with_data(E[Entry.FREE], d)
 
 
 def _passive(m, d):
@@ -475,8 +434,8 @@ def _passive(m, d):
     e = hook.model_entry(m)
     if e == 0:
         return
-    E = carray(abi.i64_ptr(e), E_WORDS)
-    if E[E_NPEN] > 0 or E[E_NCPL] > 0:
+    E = carray(abi.i64_ptr(e), ENTRY_WORDS)
+    if E[Entry.NPEN] > 0 or E[Entry.NCPL] > 0:
         apply(E, m, d)
 
 

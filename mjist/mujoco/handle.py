@@ -83,7 +83,7 @@ class Handle:
         pen = [p for p in self.pairs if p.mode == "penalty"]
         nman = len(self.trees)
         pair = self._row(data, self._entry.pair_index[pen[0].ids]) if pen and self._entry is not None else None
-        has_coupling = self._entry is not None and self._entry.words[layout.E_NCPL] > 0
+        has_coupling = self._entry is not None and self._entry.words[layout.Entry.NCPL] > 0
         return pair, (self._row(data, nman * nman) if has_coupling else None)
 
     def _row(self, data, pk: int):
@@ -111,7 +111,7 @@ class Handle:
                 out["pairs"][f"{p.geom1}/{p.geom2}"] = {
                     "force": r[L.O_F:L.O_F + 3].copy(), "torque": r[L.O_T:L.O_T + 3].copy(),
                     "contacts": int(r[L.O_N]), "depth": float(r[L.O_DEPTH]), "volume": float(r[L.O_VOL])}
-        if self._entry.words[L.E_NCPL]:
+        if self._entry.words[L.Entry.NCPL]:
             r = self._row(data, len(self.trees) ** 2)
             if r is not None:
                 out["coupling"] = {"force": r[L.O_F:L.O_F + 3].copy(), "torque": r[L.O_T:L.O_T + 3].copy()}

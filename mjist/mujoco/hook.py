@@ -52,59 +52,7 @@ from ..query import traverse as tv
 from ..query.select import spread
 from . import abi
 from .layout import (
-    C_BADPOSE,
-    C_CALLS,
-    C_CONTACT_CALLS,
-    C_CONTACTS,
-    C_DISTANCE,
-    C_FALLBACK,
-    C_FRONT,
-    C_GROUPS,
-    C_HELD,
-    C_NOSTACK,
-    C_PRIM_CALLS,
-    C_PRIM_CONTACTS,
-    C_REFRESH,
-    C_SKIPPED,
-    C_STATELESS,
-    C_SURFACE,
-    C_VISITS,
-    E_ALLOC,
-    E_CAP,
-    E_COUNT,
-    E_EPS,
-    E_FREE,
-    E_FSTATE,
-    E_GPRIM,
-    E_GSLOT,
-    E_HOLD,
-    E_ISTATE,
-    E_KEYS,
-    E_MARK,
-    E_NARENA,
-    E_NARROW,
-    E_NCAND,
-    E_NGEOM,
-    E_NMAN,
-    E_NPRIM,
-    E_NSLOT,
-    E_NUP,
-    E_OFFSET,
-    E_PARENA,
-    E_PCAP,
-    E_POFF,
-    E_POOL,
-    E_PRIM,
-    E_PSTACK,
-    E_SKIP,
-    E_SPLIT,
-    E_STACK,
-    E_SURF,
-    E_TIME,
-    E_TREES,
-    E_WORDS,
-    E_XMAT,
-    E_XPOS,
+    ENTRY_WORDS,
     F_D,
     F_FOK,
     F_FT0,
@@ -150,6 +98,8 @@ from .layout import (
     STACK_RESERVE,
     SURF_F,
     SURF_W,
+    Count,
+    Entry,
     pair_floats,
     pair_ints,
     pair_scratch_bytes,
@@ -194,7 +144,7 @@ def claim_slot(E, d, p, nslot, other):
     """Index of the (d, pair) state slot (its second one if ``other``), claimed on first use;
     -1 when the table is full."""
     key = slot_key(d, p, other)
-    keys_addr = E[E_KEYS]
+    keys_addr = E[Entry.KEYS]
     keys = carray(abi.i64_ptr(keys_addr), nslot)
     h = ((d >> 4) ^ (p * 2654435761) ^ (other * 40503)) % nslot
     for k in range(nslot):
@@ -218,9 +168,9 @@ def stack_room(E, d, need):
     The arena fields read here describe the caller's stack only without a thread pool; with
     one, MuJoCo gives each thread its own stack and the check is left to it.
     """
-    if abi.load_i64(d + E[E_POOL]) != 0:
+    if abi.load_i64(d + E[Entry.POOL]) != 0:
         return True
-    free = abi.load_i64(d + E[E_NARENA]) - abi.load_i64(d + E[E_PSTACK]) - abi.load_i64(d + E[E_PARENA])
+    free = abi.load_i64(d + E[Entry.NARENA]) - abi.load_i64(d + E[Entry.PSTACK]) - abi.load_i64(d + E[Entry.PARENA])
     return free >= need + STACK_RESERVE
 
 
@@ -241,9 +191,9 @@ def pair_exits(E, g1, g2):
 @njit(cache=True)
 def pair_arrays(E, g1, g2):
     """``(Na, Nb, Xa, Xb)``: the packed trees of managed geoms ``g1``, ``g2`` and their exit directions."""
-    nman = E[E_NMAN]
-    gslot = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])
-    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
+    nman = E[Entry.NMAN]
+    gslot = carray(abi.i64_ptr(E[Entry.GSLOT]), E[Entry.NGEOM])
+    trees = carray(abi.i64_ptr(E[Entry.TREES]), 3 * nman)
     ka = gslot[g1]
     kb = gslot[g2]
     Na = carray(abi.f64_ptr(trees[3 * ka]), (trees[3 * ka + 1], 8))
@@ -258,8 +208,8 @@ def _pair_scratch(E, scratch, cap):
     """Views of a pair call's scratch (``layout.pair_floats``, ``layout.pair_ints``): float64
     poses, stack values, candidate values, dmin, geometry rows, a stateless slot, the blend
     accumulator; then int64 stack pairs, candidates, chosen, closest pair, a stateless slot."""
-    ns = E[E_STACK]
-    nc = E[E_NCAND]
+    ns = E[Entry.STACK]
+    nc = E[Entry.NCAND]
     nf = pair_floats(ns, nc)
     f = carray(abi.f64_ptr(scratch), nf)
     Pa = f[0:16].reshape((4, 4))
@@ -287,8 +237,8 @@ def _pair_scratch(E, scratch, cap):
 @njit(cache=True)
 def _posed(E, d, g1, g2, Pa, Pb, xf):
     """``Pa``, ``Pb`` ← the two geoms' world poses, ``xf`` ← B in A's frame; False for a bad pose."""
-    xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
-    xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
+    xpos = abi.f64_ptr(abi.load_i64(d + E[Entry.XPOS]))
+    xmat = abi.f64_ptr(abi.load_i64(d + E[Entry.XMAT]))
     geom_pose(xpos, xmat, g1, Pa)
     geom_pose(xpos, xmat, g2, Pb)
     return tv.relative_pose(Pa, Pb, xf)
@@ -315,17 +265,17 @@ def _write_row_at(row, dist, Pa, px, py, pz, nx, ny, nz):
 def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
     """Contacts of a managed pair into ``con``; returns the count (0..cap). ``soft``: rows for the
     penalty forces (with surfaces, ``_surface_penalty``'s)."""
-    nman = E[E_NMAN]
-    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    nman = E[Entry.NMAN]
+    count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
     Na, Nb = pair_trees(E, g1, g2)
-    offset = carray(abi.f64_ptr(E[E_OFFSET]), nman * nman)[p]
-    eps = carray(abi.f64_ptr(E[E_EPS]), nman * nman)[p]
-    surface = E[E_NARROW] != 0
+    offset = carray(abi.f64_ptr(E[Entry.OFFSET]), nman * nman)[p]
+    eps = carray(abi.f64_ptr(E[Entry.EPS]), nman * nman)[p]
+    surface = E[Entry.NARROW] != 0
     thr = margin + (eps if surface else offset)
     Pa, Pb, xf, sv, cval, dmin, geom, fs_local, bacc, st, cand, chosen, pair, is_local = _pair_scratch(E, scratch, cap)
 
     if not _posed(E, d, g1, g2, Pa, Pb, xf):
-        count[C_BADPOSE] += 1
+        count[Count.BAD_POSE] += 1
         return 0
     ist, fst = _slot_state(E, d, p, margin, Na.shape[0], Nb.shape[0], is_local, fs_local, count)
 
@@ -337,16 +287,16 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
         fst[F_LXF + k] = xf[k]
     fst[F_LOK] = 1.0
 
-    skip = E[E_SKIP] != 0
+    skip = E[Entry.SKIP] != 0
     if skip and fst[F_OK] > 0.0:
         mb = tv.motion_bound(fst[F_REF:F_REF + 12], xf, Nb[0, 0:3], Nb[0, 3])
         if fst[F_D] - mb >= thr:
-            count[C_SKIPPED] += 1
+            count[Count.SKIPPED] += 1
             fst[F_NPN] = 0.0
             return 0
-    hold = carray(abi.f64_ptr(E[E_HOLD]), nman * nman)[p] if surface and not soft else 0.0
+    hold = carray(abi.f64_ptr(E[Entry.HOLD]), nman * nman)[p] if surface and not soft else 0.0
     if hold > 0.0 and fst[F_HOK] > 0.0 and tv.motion_bound(fst[F_HXF:F_HXF + 12], xf, Nb[0, 0:3], Nb[0, 3]) <= hold:
-        count[C_HELD] += 1
+        count[Count.HELD_CALLS] += 1
         return _held_contacts(fst, xf, Pa, margin, con, cap)
     nheld = int(fst[F_HN]) if hold > 0.0 and fst[F_HOK] > 0.0 else 0  # measured again below
     fst[F_HOK] = 0.0
@@ -354,7 +304,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
     if code != tv.OK:
         ist[I_NPREV] = 0
         fst[F_FOK] = 0.0
-        count[C_FALLBACK] += 1
+        count[Count.FAILED] += 1
         return 0
     prev = ist[I_PREV:I_PREV + 4 * KP].reshape((KP, 4))
     keep = min(n, KP)
@@ -386,8 +336,8 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
                         cap, count, fst, step)
     ist[I_PAIR] = cand[chosen[0], 2]
     ist[I_PAIR + 1] = cand[chosen[0], 3]
-    count[C_CONTACT_CALLS] += 1
-    count[C_CONTACTS] += k
+    count[Count.CONTACT_CALLS] += 1
+    count[Count.CONTACTS] += k
     return k
 
 
@@ -453,7 +403,7 @@ def distance_request(E, d, con, raw):
     buffers come from the MjData's arena, where ``raw`` (our scratch, just taken from that
     arena's stack) also lies. A buffer within the arena's size of ``raw`` is treated as
     ``mj_collision``'s: a wrong guess that way only costs time, never contacts."""
-    narena = abi.load_i64(d + E[E_NARENA])
+    narena = abi.load_i64(d + E[Entry.NARENA])
     return not (raw - narena < con < raw + narena)
 
 
@@ -465,24 +415,24 @@ def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
     than a contact margin). Its distance equals the groups' deepest. With the surface narrow
     phase, the smallest of the surfaces' distances over the groups within ε1+ε2 of the IST's
     minimum, or that minimum when it is smaller and positive. Returns 0 or 1."""
-    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
+    count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
     Na, Nb = pair_trees(E, g1, g2)
-    offset = carray(abi.f64_ptr(E[E_OFFSET]), E[E_NMAN] * E[E_NMAN])[p]
+    offset = carray(abi.f64_ptr(E[Entry.OFFSET]), E[Entry.NMAN] * E[Entry.NMAN])[p]
     Pa, Pb, xf, sv, cval, _, geom, fs_local, _, st, cand, _, pair, is_local = _pair_scratch(E, scratch, cap)
     g = geom[0]
 
     if not _posed(E, d, g1, g2, Pa, Pb, xf):
-        count[C_BADPOSE] += 1
+        count[Count.BAD_POSE] += 1
         return 0
     ist, fst = _slot_state(E, d, p, margin, Na.shape[0], Nb.shape[0], is_local, fs_local, count)
     best, code, visits = _closest(Na, Nb, xf, ist, st, sv, pair)
-    count[C_VISITS] += visits
+    count[Count.VISITS] += visits
     if code != tv.OK:
-        count[C_FALLBACK] += 1
+        count[Count.FAILED] += 1
         return 0
     row = carray(abi.f64_ptr(con), abi.PRECONTACT_DOUBLES)
-    if E[E_NARROW] != 0:
-        eps = carray(abi.f64_ptr(E[E_EPS]), E[E_NMAN] * E[E_NMAN])[p]
+    if E[Entry.NARROW] != 0:
+        eps = carray(abi.f64_ptr(E[Entry.EPS]), E[Entry.NMAN] * E[Entry.NMAN])[p]
         if not best - eps < margin:  # the surfaces are at least best - ε1 - ε2 apart
             return 0
         la, lb = pair[0], pair[1]
@@ -498,7 +448,7 @@ def pair_distance(E, d, con, g1, g2, margin, p, cap, scratch):
             _write_row(row, sval[j], Pa, geom[j])
             return 1
         if j < 0:
-            count[C_FALLBACK] += 1
+            count[Count.FAILED] += 1
         pair[0], pair[1] = la, lb
         g = geom[0]
     if not best < margin + offset:
@@ -520,23 +470,23 @@ def _slot_state(E, d, p, margin, na, nb, is_local, fs_local, count):
     reset the steps' front and seeds (the answers stay the same, the work does not): calls with
     another margin get a second slot. A full table gives the scratch's stateless slot.
     """
-    nslot = E[E_NSLOT]
-    now = abi.load_f64(d + E[E_TIME])
+    nslot = E[Entry.NSLOT]
+    now = abi.load_f64(d + E[Entry.TIME])
     s, fresh = claim_slot(E, d, p, nslot, 0)
     if s >= 0:
-        fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+        fst = carray(abi.f64_ptr(E[Entry.FSTATE] + 8 * FW * s), FW)
         if not fresh and not (fst[F_TIME] <= now):
             fresh = True
         if not fresh and fst[F_MARGIN] != margin:
             s, fresh = claim_slot(E, d, p, nslot, 1)
             if s >= 0:
-                fst = carray(abi.f64_ptr(E[E_FSTATE] + 8 * FW * s), FW)
+                fst = carray(abi.f64_ptr(E[Entry.FSTATE] + 8 * FW * s), FW)
                 if not fresh and not (fst[F_TIME] <= now):
                     fresh = True
     if s >= 0:
-        ist = carray(abi.i64_ptr(E[E_ISTATE] + 8 * IW * s), IW)
+        ist = carray(abi.i64_ptr(E[Entry.ISTATE] + 8 * IW * s), IW)
     else:
-        count[C_STATELESS] += 1
+        count[Count.STATELESS] += 1
         ist = is_local
         fst = fs_local
         fresh = True
@@ -577,7 +527,7 @@ def _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, p
         mb = tv.motion_bound(fst[F_FXF:F_FXF + 12], xf, Nb[0, 0:3], Nb[0, 3])
         use_front = mb < fst[F_FT0] - thr
     if use_front:
-        count[C_FRONT] += 1
+        count[Count.FRONT_CALLS] += 1
         n, code, visits = tv.front_search(Na, Nb, xf, st, sv, front, ist[I_NFRONT], thr, cand, cval, pair)
     else:
         for k in range(n_prev):
@@ -586,10 +536,10 @@ def _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, p
                 break
         slack = min(max(SLACK_MOTION * step, SLACK_MIN * eps), SLACK_MAX * eps) if skip else 0.0
         t0 = thr + slack
-        n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[E_SPLIT], t0, prev, n_prev, cand, cval, pair)
+        n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[Entry.SPLIT], t0, prev, n_prev, cand, cval, pair)
         fst[F_FOK] = 0.0
         if code == tv.OK and skip and n < min(NG, cand.shape[0]):
-            count[C_REFRESH] += 1
+            count[Count.FRONT_REFRESHES] += 1
             for i in range(n):
                 for c in range(4):
                     front[i, c] = cand[i, c]
@@ -608,8 +558,8 @@ def _groups(E, Na, Nb, xf, ist, fst, thr, eps, step, skip, st, sv, cand, cval, p
                 cval[m] = cval[i]
                 m += 1
         n = m
-    count[C_VISITS] += visits
-    count[C_GROUPS] += ist[I_NFRONT]
+    count[Count.VISITS] += visits
+    count[Count.FRONT_GROUPS] += ist[I_NFRONT]
     return n, code, use_front
 
 
@@ -661,15 +611,15 @@ def _write_contacts(E, Na, Nb, Xa, Xb, xf, Pa, cand, cval, chosen, k, geom, thr,
     for j in range(k):
         i = chosen[j]
         g = geom[i]
-        if E[E_NUP] > 0:
-            tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[E_NUP])
+        if E[Entry.NUP] > 0:
+            tv.contact_normal(Na, Nb, xf, cand[i, 2], cand[i, 3], g, E[Entry.NUP])
         else:
             s = tv.surface_normal(Na, Nb, Xa, Xb, xf, cand[i, 2], cand[i, 3], g)
             reach = 2.0 * (abs(cval[i]) + Na[cand[i, 2], 3] + Nb[cand[i, 3], 3])
             if s > tv.DEEP and nmem > 0 and step < reach:
                 _side_of_approach(mem, nmem, g, reach)
-        if E[E_NUP] > 0 and cval[i] < thr:
-            count[C_VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP],
+        if E[Entry.NUP] > 0 and cval[i] < thr:
+            count[Count.VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[Entry.NUP],
                                             bacc, pair, g)
         _write_row(out[j], cval[i] - offset, Pa, g)
     keep = min(k, KP)
@@ -726,8 +676,8 @@ def _blend_group(Na, Nb, xf, st, sv, ga, gb, cut, climb, acc, pair, g):
 @njit(cache=True)
 def _surface(E, g):
     """The packed surface (``geometry.surface.unpack``) of managed geom ``g``, with its grid."""
-    k = carray(abi.i64_ptr(E[E_GSLOT]), E[E_NGEOM])[g]
-    tab = carray(abi.i64_ptr(E[E_SURF]), SURF_W * E[E_NMAN])[SURF_W * k:SURF_W * k + SURF_W]
+    k = carray(abi.i64_ptr(E[Entry.GSLOT]), E[Entry.NGEOM])[g]
+    tab = carray(abi.i64_ptr(E[Entry.SURF]), SURF_W * E[Entry.NMAN])[SURF_W * k:SURF_W * k + SURF_W]
     nv = tab[2]
     nf = tab[3]
     m = tab[4]
@@ -744,8 +694,8 @@ def _surface_scratch(E, scratch, cap):
     """The surface narrow phase's part of a pair call's scratch (the tails of
     ``layout.pair_floats`` and ``layout.pair_ints``): candidate values, ``local_distance``'s
     temporaries and answer, the surface queries' stack."""
-    ns = E[E_STACK]
-    nc = E[E_NCAND]
+    ns = E[Entry.STACK]
+    nc = E[Entry.NCAND]
     nf = pair_floats(ns, nc)
     f = carray(abi.f64_ptr(scratch), nf)
     o = nf - nc - SURF_F
@@ -761,8 +711,8 @@ def _surface_scratch(E, scratch, cap):
 def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, count, ways):
     """``narrow.measure`` with the hook's counters."""
     m, failed = nw.measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, ways)
-    count[C_SURFACE] += n
-    count[C_FALLBACK] += failed
+    count[Count.SURFACE_GROUPS] += n
+    count[Count.FAILED] += failed
     return m
 
 
@@ -777,12 +727,12 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
     SA = _surface(E, g1)
     SB = _surface(E, g2)
     out = carray(abi.f64_ptr(con), (cap, abi.PRECONTACT_DOUBLES))
-    n = nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, E[E_NARROW], geom, tmp, sst)
+    n = nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, E[Entry.NARROW], geom, tmp, sst)
     # beside held contacts (a pair that was at rest) the groups one way only: a second way that
     # nearly ties with the held contacts' trades places with them and kicks the pair
     ways = sf.FORWARD if nheld > 0 else sf.EITHER
     m = _measure(E, SA, SB, Na, Nb, xf, cand, n, margin, eps, geom, sval, tmp, res, sst, count, ways)
-    m = _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, E[E_NCAND], tmp, res, sst, count)
+    m = _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, E[Entry.NCAND], tmp, res, sst, count)
     k = spread(geom, 9, sval, m, cap, chosen, dmin)
     kk = nw.distinct(geom, chosen, k, eps)  # groups whose descents ended at one point give one contact
     for j in range(kk):
@@ -804,11 +754,11 @@ def _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, nc
             break
         h = hc[j]
         x, y, z = sf.to_a(xf, h[H_B], h[H_B + 1], h[H_B + 2])
-        count[C_SURFACE] += 1
+        count[Count.SURFACE_GROUPS] += 1
         # no leaf pair of its own: the first group's keeps the bookkeeping valid
         m, ok = nw.measure_from(SA, SB, xf, x, y, z, margin, eps, 0, cand, geom, sval, m, tmp, res, sst,
                                 int(h[H_WAY]) & sf.EITHER or sf.EITHER)  # its own way
-        count[C_FALLBACK] += not ok
+        count[Count.FAILED] += not ok
     return m
 
 
@@ -831,12 +781,12 @@ def _surface_penalty(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom
     for i in range(n):
         g = geom[i]
         tv.leaf_geometry(Na, Nb, xf, cand[i, 2], cand[i, 3], g)
-        count[C_VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[E_NUP],
+        count[Count.VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[Entry.NUP],
                                         bacc, pair, g)
         depth = sf.overlap_depth(SA, SB, xf, g[9], g[10], g[11], g[0], g[1], g[2], eps, sst, res)
-        count[C_SURFACE] += 1
+        count[Count.SURFACE_GROUPS] += 1
         if not depth == depth:  # a surface query failed
-            count[C_FALLBACK] += 1
+            count[Count.FAILED] += 1
         elif depth > -margin:
             if m == 0 or depth > -sval[chosen[0]]:
                 chosen[0] = i
@@ -854,11 +804,11 @@ def _surface_distance(E, Na, Nb, xf, g1, g2, best, eps, ist, st, sv, cand, cval,
     the first word of the surface scratch's values."""
     sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
     prev = ist[I_PREV:I_PREV + 4 * KP].reshape((KP, 4))
-    n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[E_SPLIT], best + eps, prev, 0, cand, cval, pair)
-    count[C_VISITS] += visits
+    n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, E[Entry.SPLIT], best + eps, prev, 0, cand, cval, pair)
+    count[Count.VISITS] += visits
     if code != tv.OK:
         return -1
-    n = nw.deepest(cand, cval, n, E[E_NARROW])
+    n = nw.deepest(cand, cval, n, E[Entry.NARROW])
     m = _measure(E, _surface(E, g1), _surface(E, g2), Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res, sst,
                  count, sf.EITHER)
     return nw.smallest(sval, m)
@@ -870,14 +820,14 @@ def _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, scratch):
 
     ``mesh_first``: MuJoCo passed the mesh as geom1, so the normal (primitive → mesh) flips.
     """
-    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
-    nman = E[E_NMAN]
-    trees = carray(abi.i64_ptr(E[E_TREES]), 3 * nman)
+    count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
+    nman = E[Entry.NMAN]
+    trees = carray(abi.i64_ptr(E[Entry.TREES]), 3 * nman)
     N = carray(abi.f64_ptr(trees[3 * k]), (trees[3 * k + 1], 8))
-    prim = carray(abi.f64_ptr(E[E_PRIM]), (E[E_NPRIM], 4))
-    offset = carray(abi.f64_ptr(E[E_POFF]), E[E_NPRIM] * nman)[pi * nman + k]
-    ns = E[E_STACK]
-    nc = E[E_NCAND]
+    prim = carray(abi.f64_ptr(E[Entry.PRIM]), (E[Entry.NPRIM], 4))
+    offset = carray(abi.f64_ptr(E[Entry.POFF]), E[Entry.NPRIM] * nman)[pi * nman + k]
+    ns = E[Entry.STACK]
+    nc = E[Entry.NCAND]
     # scratch (float64): Pm, Pp (16 each), xf (12), q (6), values, dmin, geometry rows;
     # then int64: stack, candidates (group, leaf), chosen
     nf = prim_floats(nc)
@@ -893,18 +843,18 @@ def _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, scratch):
     st = iw[0:ns]
     cand = iw[ns:ns + 2 * nc].reshape((nc, 2))
     chosen = iw[ns + 2 * nc:ns + 2 * nc + cap]
-    xpos = abi.f64_ptr(abi.load_i64(d + E[E_XPOS]))
-    xmat = abi.f64_ptr(abi.load_i64(d + E[E_XMAT]))
+    xpos = abi.f64_ptr(abi.load_i64(d + E[Entry.XPOS]))
+    xmat = abi.f64_ptr(abi.load_i64(d + E[Entry.XMAT]))
     geom_pose(xpos, xmat, gm, Pm)
     geom_pose(xpos, xmat, gp, Pp)
     if not tv.relative_pose(Pp, Pm, xf):  # tree frame -> primitive frame
-        count[C_BADPOSE] += 1
+        count[Count.BAD_POSE] += 1
         return 0
     n, code, visits = cp.tree_contacts(N, int(prim[pi, 0]), prim[pi, 1], prim[pi, 2], prim[pi, 3], xf,
-                                       margin + offset, E[E_SPLIT], st, cand, cval, geom, q)
-    count[C_VISITS] += visits
+                                       margin + offset, E[Entry.SPLIT], st, cand, cval, geom, q)
+    count[Count.VISITS] += visits
     if code != tv.OK:
-        count[C_FALLBACK] += 1
+        count[Count.FAILED] += 1
         return 0
     if n == 0:
         return 0
@@ -919,35 +869,35 @@ def _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, scratch):
             row[1 + r] = Pp[r, 0] * geom[i, 3] + Pp[r, 1] * geom[i, 4] + Pp[r, 2] * geom[i, 5] + Pp[r, 3]
             row[4 + r] = sign * (Pp[r, 0] * geom[i, 0] + Pp[r, 1] * geom[i, 1] + Pp[r, 2] * geom[i, 2])
             row[7 + r] = 0.0
-    count[C_PRIM_CONTACTS] += k_out
+    count[Count.PRIMITIVE_CONTACTS] += k_out
     return k_out
 
 
 @njit(cache=True)
 def _collide_prim(E, d, con, g1, g2, ka, kb, margin):
     """The primitive path of ``collide``; -1 when the pair is not ours."""
-    ngeom = E[E_NGEOM]
-    gprim = carray(abi.i64_ptr(E[E_GPRIM]), ngeom)
+    ngeom = E[Entry.NGEOM]
+    gprim = carray(abi.i64_ptr(E[Entry.GPRIM]), ngeom)
     if ka >= 0 and gprim[g2] >= 0:
         gm, gp, k, pi, mesh_first = g1, g2, ka, gprim[g2], True
     elif kb >= 0 and gprim[g1] >= 0:
         gm, gp, k, pi, mesh_first = g2, g1, kb, gprim[g1], False
     else:
         return -1
-    nman = E[E_NMAN]
-    cap = carray(abi.i64_ptr(E[E_PCAP]), E[E_NPRIM] * nman)[pi * nman + k]
+    nman = E[Entry.NMAN]
+    cap = carray(abi.i64_ptr(E[Entry.PCAP]), E[Entry.NPRIM] * nman)[pi * nman + k]
     if cap <= 0:
         return -1
-    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
-    count[C_PRIM_CALLS] += 1
-    need = prim_scratch_bytes(E[E_STACK], E[E_NCAND], cap)
+    count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
+    count[Count.PRIMITIVE_CALLS] += 1
+    need = prim_scratch_bytes(E[Entry.STACK], E[Entry.NCAND], cap)
     if not stack_room(E, d, need):
-        count[C_NOSTACK] += 1
+        count[Count.NO_STACK] += 1
         return 0
-    abi.call_with_data(E[E_MARK], d)
-    raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
+    abi.call_with_data(E[Entry.MARK], d)
+    raw = abi.call_stack_alloc(E[Entry.ALLOC], d, need, 64)
     n = _managed_prim(E, d, con, gm, gp, mesh_first, k, pi, cap, margin, raw)
-    abi.call_with_data(E[E_FREE], d)
+    abi.call_with_data(E[Entry.FREE], d)
     return n
 
 
@@ -957,35 +907,35 @@ def collide(slot, m, d, con, g1, g2, margin):
     e = model_entry(m)
     root_addr = abi.registry_root()
     if e != 0:
-        E = carray(abi.i64_ptr(e), E_WORDS)
-        ngeom = E[E_NGEOM]
+        E = carray(abi.i64_ptr(e), ENTRY_WORDS)
+        ngeom = E[Entry.NGEOM]
         if 0 <= g1 < ngeom and 0 <= g2 < ngeom:
-            gslot = carray(abi.i64_ptr(E[E_GSLOT]), ngeom)
+            gslot = carray(abi.i64_ptr(E[Entry.GSLOT]), ngeom)
             ka = gslot[g1]
             kb = gslot[g2]
             if ka >= 0 and kb >= 0:
-                nman = E[E_NMAN]
+                nman = E[Entry.NMAN]
                 p = ka * nman + kb
-                cap = carray(abi.i64_ptr(E[E_CAP]), nman * nman)[p]
+                cap = carray(abi.i64_ptr(E[Entry.CAP]), nman * nman)[p]
                 if cap < 0:
                     return 0  # a penalty pair: forces.py applies its forces, no MuJoCo contact
                 if cap > 0:
-                    count = carray(abi.i64_ptr(E[E_COUNT]), N_COUNT)
-                    count[C_CALLS] += 1
-                    need = pair_scratch_bytes(E[E_STACK], E[E_NCAND], cap)
+                    count = carray(abi.i64_ptr(E[Entry.COUNT]), N_COUNT)
+                    count[Count.CALLS] += 1
+                    need = pair_scratch_bytes(E[Entry.STACK], E[Entry.NCAND], cap)
                     if not stack_room(E, d, need):
-                        count[C_NOSTACK] += 1
+                        count[Count.NO_STACK] += 1
                         return 0
-                    abi.call_with_data(E[E_MARK], d)
-                    raw = abi.call_stack_alloc(E[E_ALLOC], d, need, 64)
+                    abi.call_with_data(E[Entry.MARK], d)
+                    raw = abi.call_stack_alloc(E[Entry.ALLOC], d, need, 64)
                     if distance_request(E, d, con, raw):
-                        count[C_DISTANCE] += 1
+                        count[Count.DISTANCE_CALLS] += 1
                         k = pair_distance(E, d, con, g1, g2, margin, p, cap, raw)
                     else:
                         k = pair_contacts(E, m, d, con, g1, g2, margin, p, cap, raw, False)
-                    abi.call_with_data(E[E_FREE], d)
+                    abi.call_with_data(E[Entry.FREE], d)
                     return k
-            elif E[E_NPRIM] > 0:
+            elif E[Entry.NPRIM] > 0:
                 k = _collide_prim(E, d, con, g1, g2, ka, kb, margin)
                 if k >= 0:
                     return k

@@ -9,6 +9,7 @@ it everywhere at once; numba reads these module globals as compile-time constant
 from __future__ import annotations
 
 import math
+from enum import IntEnum, auto
 
 import numpy as np
 from numba import njit
@@ -44,48 +45,97 @@ SLOTS = (  # collision-table slots the hook can take over (hook.COLLISION_TABLE)
 # then (model address, entry address) per model
 ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_MODELS, ROOT_WORDS = _offsets(1, len(SLOTS), 1, 2 * MAX_MODELS)
 
-# ---- model entry (int64 words; addresses are of numpy arrays the entry keeps alive) -------
-(
-    E_NGEOM,  # model.ngeom
-    E_GSLOT,  # per geom: its IST index k (-1: not managed)
-    E_NMAN,  # managed geoms (nman)
-    E_CAP,  # per pair p = ka * nman + kb: contacts written at most (0: not managed, -1: penalty)
-    E_TREES,  # per k: (packed tree address, node count, traverse.exit_directions (n, 4) address)
-    E_OFFSET,  # per pair: subtracted from the IST distance (metres)
-    E_XPOS, E_XMAT,  # offsets in mjData of geom_xpos, geom_xmat
-    E_ALLOC, E_MARK, E_FREE,  # mj_stackAllocByte, mj_markStack, mj_freeStack
-    E_KEYS, E_NSLOT, E_ISTATE, E_FSTATE,  # the (MjData, pair) state slots: keys, count, int and float state
-    E_STACK, E_NCAND,  # traversal stack capacity, candidate capacity
-    E_SPLIT, E_SKIP,  # contact-group depth, motion-bound skipping on/off
-    E_COUNT,  # counters (C_*)
-    E_NARENA, E_PSTACK, E_PARENA, E_POOL,  # offsets in mjData of the arena bookkeeping and thread pool
-    E_TIME,  # offset in mjData of time
-    E_EPS,  # per pair: ε1 + ε2
-    E_GPRIM, E_NPRIM, E_PRIM,  # primitives: per-geom index, count, (nprim, 4) table [type, size0..2]
-    E_PCAP, E_POFF,  # per (primitive, tree): cap and offset
-    E_NUP,  # levels contact normals climb at least (penalty mode: smooth force directions)
-    E_NPEN, E_PEN, E_NCPL, E_CPL, E_POUT,  # forces: penalty rows, coupling rows, output rows
-    E_APPLYFT, E_OBJVEL,  # mj_applyFT, mj_objectVelocity
-    E_QFRCP, E_BXPOS, E_BXQUAT, E_BXIPOS, E_MOCPOS, E_MOCQUAT,  # offsets in mjData
-    E_NBODY, E_NMOCAP,
-    E_DT_NS,  # the model's timestep in nanoseconds
-    E_NARROW,  # mesh–mesh narrow phase: 0 the leaf spheres, else groups measured on the surfaces per call
-    E_SURF,  # per k, SURF_W words: surface floats, ints (addresses), vertices, faces, BVH nodes, grid header, table, values (addresses), bricks; see geometry.surface
-    E_HOLD,  # per pair: how far B may move from where its surface contacts were measured before they are again (0: never held)
-    E_WORDS,
-) = range(52)
+# ---- model entry ---------------------------------------------------------------------------
 
-# ---- counters (racy increments from several threads: statistics only) ----------------------
-(C_CALLS, C_CONTACT_CALLS, C_CONTACTS, C_SKIPPED, C_STATELESS, C_NOSTACK, C_BADPOSE, C_FALLBACK, C_FRONT,
- C_REFRESH, C_VISITS, C_GROUPS, C_PRIM_CALLS, C_PRIM_CONTACTS,
- C_STIFF,  # penalty steps whose summed contact stiffness exceeded the explicit stability bound
- C_DISTANCE,  # calls answered with the distance only (mj_geomDistance, distance sensors)
- C_SURFACE,  # contact groups measured on the surfaces (mjist_narrowphase surface)
- C_HELD,  # surface contact calls answered by last measurement's contacts (the pair moved less than the hold)
- N_COUNT) = range(19)
-COUNTER_NAMES = ("calls", "contact_calls", "contacts", "skipped", "stateless", "no_stack", "bad_pose", "failed",
-                 "front_calls", "front_refreshes", "visits", "front_groups", "primitive_calls", "primitive_contacts",
-                 "over_stiffness_budget", "distance_calls", "surface_groups", "held_calls")
+
+class Entry(IntEnum):
+    """The int64 words of a model entry, in order (addresses are of numpy arrays the entry
+    keeps alive); ``ENTRY_WORDS`` of them."""
+
+    NGEOM = 0  # model.ngeom
+    GSLOT = auto()  # per geom: its IST index k (-1: not managed)
+    NMAN = auto()  # managed geoms (nman)
+    CAP = auto()  # per pair p = ka * nman + kb: contacts written at most (0: not managed, -1: penalty)
+    TREES = auto()  # per k: (packed tree address, node count, traverse.exit_directions (n, 4) address)
+    OFFSET = auto()  # per pair: subtracted from the IST distance (metres)
+    XPOS = auto()  # offset in mjData of geom_xpos
+    XMAT = auto()  # ... of geom_xmat
+    ALLOC = auto()  # address of mj_stackAllocByte
+    MARK = auto()  # ... of mj_markStack
+    FREE = auto()  # ... of mj_freeStack
+    KEYS = auto()  # the (MjData, pair) state slots' keys
+    NSLOT = auto()  # ... their count
+    ISTATE = auto()  # ... their int64 state (IW words each)
+    FSTATE = auto()  # ... their float64 state (FW words each)
+    STACK = auto()  # traversal stack capacity
+    NCAND = auto()  # candidate capacity
+    SPLIT = auto()  # contact-group depth
+    SKIP = auto()  # motion-bound skipping on/off
+    COUNT = auto()  # the counters (Count)
+    NARENA = auto()  # offset in mjData of narena
+    PSTACK = auto()  # ... of pstack
+    PARENA = auto()  # ... of parena
+    POOL = auto()  # ... of threadpool
+    TIME = auto()  # offset in mjData of time
+    EPS = auto()  # per pair: ε1 + ε2
+    GPRIM = auto()  # primitives: per geom, its index (-1: none)
+    NPRIM = auto()  # ... their count
+    PRIM = auto()  # ... their (nprim, 4) table [type, size0..2]
+    PCAP = auto()  # per (primitive, tree): contacts written at most
+    POFF = auto()  # ... offset
+    NUP = auto()  # levels contact normals climb at least (penalty mode: smooth force directions)
+    NPEN = auto()  # forces: penalty rows' count
+    PEN = auto()  # ... penalty rows (Pen)
+    NCPL = auto()  # ... coupling rows' count
+    CPL = auto()  # ... coupling rows (CPL_*)
+    POUT = auto()  # ... output rows (O_*)
+    APPLYFT = auto()  # address of mj_applyFT
+    OBJVEL = auto()  # ... of mj_objectVelocity
+    QFRCP = auto()  # offset in mjData of qfrc_passive
+    BXPOS = auto()  # ... of xpos
+    BXQUAT = auto()  # ... of xquat
+    BXIPOS = auto()  # ... of xipos
+    MOCPOS = auto()  # ... of mocap_pos
+    MOCQUAT = auto()  # ... of mocap_quat
+    NBODY = auto()  # model.nbody
+    NMOCAP = auto()  # model.nmocap
+    DT_NS = auto()  # the model's timestep in nanoseconds
+    NARROW = auto()  # mesh–mesh narrow phase: 0 the leaf spheres, else groups measured on the surfaces per call
+    SURF = auto()  # per k, SURF_W words: surface floats, ints (addresses), vertices, faces, BVH nodes, grid header, table, values (addresses), bricks; see geometry.surface
+    HOLD = auto()  # per pair: how far B may move from where its surface contacts were measured before they are again (0: never held)
+
+
+ENTRY_WORDS = len(Entry)
+
+# ---- counters ------------------------------------------------------------------------------
+
+
+class Count(IntEnum):
+    """The counters, in order (racy increments from several threads: statistics only);
+    ``Handle.stats`` reports each under its name in lower case."""
+
+    CALLS = 0
+    CONTACT_CALLS = auto()
+    CONTACTS = auto()
+    SKIPPED = auto()
+    STATELESS = auto()
+    NO_STACK = auto()
+    BAD_POSE = auto()
+    FAILED = auto()  # a traversal or a surface query gave no answer (the call wrote none, or dropped that group)
+    FRONT_CALLS = auto()
+    FRONT_REFRESHES = auto()
+    VISITS = auto()
+    FRONT_GROUPS = auto()
+    PRIMITIVE_CALLS = auto()
+    PRIMITIVE_CONTACTS = auto()
+    OVER_STIFFNESS_BUDGET = auto()  # penalty steps whose summed contact stiffness exceeded the explicit stability bound
+    DISTANCE_CALLS = auto()  # calls answered with the distance only (mj_geomDistance, distance sensors)
+    SURFACE_GROUPS = auto()  # contact groups measured on the surfaces (mjist_narrowphase surface)
+    HELD_CALLS = auto()  # surface contact calls answered by last measurement's contacts (the pair moved less than the hold)
+
+
+N_COUNT = len(Count)
+COUNTER_NAMES = tuple(c.name.lower() for c in Count)
 
 # ---- state slot of one (MjData, pair) ----------------------------------------------------
 KP = 16  # contact groups remembered for next frame
@@ -125,9 +175,24 @@ def slot_key_py(data_address: int, p: int) -> int:
 
 
 # ---- forces: rows of penalty pairs and couplings, output rows -------------------------------
-# penalty pair: pair index, geoms, bodies (body 1: -1 when static), law, stiffness k, damping c,
-# the explicit stability bound K_max, contact groups summed
-PEN_PAIR, PEN_G1, PEN_G2, PEN_B1, PEN_B2, PEN_LAW, PEN_K, PEN_C, PEN_KMAX, PEN_GROUPS, PEN_W = range(11)
+
+
+class Pen(IntEnum):
+    """The float64 columns of a penalty pair's row; ``PEN_W`` of them."""
+
+    PAIR = 0  # pair index
+    G1 = auto()  # geoms
+    G2 = auto()
+    B1 = auto()  # bodies (-1: static)
+    B2 = auto()
+    LAW = auto()  # force law
+    K = auto()  # stiffness k
+    C = auto()  # damping c
+    KMAX = auto()  # the explicit stability bound K_max
+    GROUPS = auto()  # contact groups summed
+
+
+PEN_W = len(Pen)
 # coupling: mocap id, body, gains k_t c_t k_r c_r, the body's centre of mass in its frame (3)
 CPL_MOCAP, CPL_BODY, CPL_KT, CPL_CT, CPL_KR, CPL_CR, CPL_COM, CPL_W = _offsets(1, 1, 1, 1, 1, 1, 3)
 # output row per (MjData, pair | coupling) slot: force, torque, contacts, depth, volume, time;
@@ -141,7 +206,7 @@ STACK_RESERVE = 65536
 POSE_W = 44  # two 4x4 poses and the 3x4 relative transform
 PAIR_GEOM_W = nw.GEOM_W  # per candidate: normal, the two ball points, contact point (tv.leaf_geometry), way
 SURF_F = sf.REFINE_W + 8  # the surface narrow phase: local_distance's temporaries and answer
-SURF_W = 9  # E_SURF words per managed geom
+SURF_W = 9  # Entry.SURF words per managed geom
 PRIM_F = 50  # the primitive path: two poses, transform, the primitive's query point (6)
 PEN_CAP = 64  # contact groups a penalty pair sums at most (the deepest and most spread when more)
 SMALL = 64  # float64 words of the forces' per-call temporaries

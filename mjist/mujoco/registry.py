@@ -15,7 +15,7 @@ import threading
 import numpy as np
 
 from . import abi, hook
-from .layout import E_WORDS, MAX_MODELS, ROOT_MODELS, ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_WORDS, SLOTS
+from .layout import ENTRY_WORDS, MAX_MODELS, ROOT_MODELS, ROOT_N, ROOT_ORIG, ROOT_PASSIVE, ROOT_WORDS, SLOTS
 
 _LOCK = threading.Lock()
 _ENTRIES: dict[int, "ModelEntry"] = {}  # mjModel address -> entry
@@ -49,7 +49,7 @@ class ModelEntry:
         self.address = int(model._address)
         self.arrays = arrays
         self.slots = slots  # which table slots this model needs
-        self.words = np.zeros(E_WORDS, np.int64)
+        self.words = np.zeros(ENTRY_WORDS, np.int64)
         self.counters = arrays["counters"]
         self.passive = False  # needs the mjcb_passive callback (penalty pairs or a coupling)
         self.pair_index = {}  # (geom1, geom2) -> the pair's slot index p
