@@ -18,6 +18,7 @@ nothing in the kernel and pays the Python dispatch once.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
@@ -35,6 +36,18 @@ NARROWPHASES = ("spheres", "surface")
 # ref (coherence) layout: xf at the last full distance query (12), its IST distance, valid
 _REF_D = 12
 _REF_OK = 13
+
+# the records the contact kernels take (numba reads a namedtuple of arrays as one argument):
+# the traversal's scratch (relative pose, pair stack and values)
+_Traversal = namedtuple("_Traversal", "xf st sv")
+# the contact groups (candidates, their values, last frame's groups and count), the selection
+# (chosen, their geometry rows, spread distances)
+_Groups = namedtuple("_Groups", "cand cval prev n_prev chosen geom dmin")
+# the surface narrow phase's scratch: values, descent temporaries and answer, query stack
+_Measure = namedtuple("_Measure", "sval tmp res sst")
+# the contacts out (world frame): positions, normals, depths, leaf pairs and groups; count,
+# candidates, visits
+_Contacts = namedtuple("_Contacts", "pos nrm dep ids info")
 
 
 @njit(cache=True)
@@ -89,31 +102,30 @@ def _distance_kernel(Na, Nb, Pa, Pb, method, skip, tol, eps, xf, ref, st, sv, pa
 
 
 @njit(cache=True)
-def _write_contacts(Pa, geom, val, cand, chosen, k, pos, nrm, dep, ids):
+def _write_contacts(Pa, geom, val, cand, chosen, k, out):
     """The ``k`` contacts ``chosen`` (rows of ``geom``, ``cand``; distance ``val``, A's frame)
-    into the world-frame outputs."""
+    into the world-frame outputs ``out`` (``_Contacts``)."""
     for j in range(k):
         i = chosen[j]
         g = geom[i]
-        _world_point(Pa, g[9], g[10], g[11], pos[j], 0)
-        _world_vec(Pa, g[0], g[1], g[2], nrm[j], 0)
-        dep[j] = -val[i]
-        ids[j, 0] = cand[i, 2]
-        ids[j, 1] = cand[i, 3]
-        ids[j, 2] = cand[i, 0]
-        ids[j, 3] = cand[i, 1]
+        _world_point(Pa, g[9], g[10], g[11], out.pos[j], 0)
+        _world_vec(Pa, g[0], g[1], g[2], out.nrm[j], 0)
+        out.dep[j] = -val[i]
+        out.ids[j, 0] = cand[i, 2]
+        out.ids[j, 1] = cand[i, 3]
+        out.ids[j, 2] = cand[i, 0]
+        out.ids[j, 3] = cand[i, 1]
 
 
 @njit(cache=True)
-def _contacts_kernel(
-    Na, Nb, Pa, Pb, method, split_depth, margin, k_max,
-    xf, st, sv, pair, prev, n_prev, cand, cval, chosen, geom, dmin, pos, nrm, dep, ids, info,
-):
-    """Contacts into ``pos, nrm, dep, ids`` (world frame); ``info``: count, candidates, visits."""
+def _contacts_kernel(Na, Nb, Pa, Pb, method, split_depth, margin, k_max, tr, pair, G, out):
+    """Contacts into ``out`` (``_Contacts``); ``tr``: ``_Traversal``, ``G``: ``_Groups``."""
+    xf, st, sv = tr.xf, tr.st, tr.sv
+    cand, cval = G.cand, G.cval
     if not tv.relative_pose(Pa, Pb, xf):
         return tv.BAD_POSE
     if method == 2:
-        n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, split_depth, margin, prev, n_prev[0], cand, cval, pair)
+        n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, split_depth, margin, G.prev, G.n_prev[0], cand, cval, pair)
     else:
         if method == 1 and pair[0] >= 0:
             best, code, visits = tv.min_distance_backtrack(Na, Nb, xf, st, sv, 0.0, pair, -np.inf)
@@ -128,21 +140,26 @@ def _contacts_kernel(
             cval[0] = best
             n = 1
     if code != tv.OK:
-        n_prev[0] = 0
+        G.n_prev[0] = 0
         pair[0] = -1
         pair[1] = -1
         return code
-    m = tv.select_spread(Na, Nb, xf, cand, cval, n, k_max, chosen, geom, dmin)
-    _write_contacts(Pa, geom, cval, cand, chosen, m, pos, nrm, dep, ids)
-    # coherence: every candidate group seeds next frame's search of that group
+    m = tv.select_spread(Na, Nb, xf, cand, cval, n, k_max, G.chosen, G.geom, G.dmin)
+    _write_contacts(Pa, G.geom, cval, cand, G.chosen, m, out)
+    _keep_groups(G, n)
+    out.info[0] = m
+    out.info[1] = n
+    out.info[2] = visits
+    return tv.OK
+
+
+@njit(cache=True)
+def _keep_groups(G, n):
+    """Coherence: every candidate group seeds next frame's search of that group."""
     for i in range(n):
         for c in range(4):
-            prev[i, c] = cand[i, c]
-    n_prev[0] = n
-    info[0] = m
-    info[1] = n
-    info[2] = visits
-    return tv.OK
+            G.prev[i, c] = G.cand[i, c]
+    G.n_prev[0] = n
 
 
 @njit(cache=True)
@@ -173,23 +190,25 @@ def _penetration_kernel(Na, Nb, Pa, Pb, xf, st, sv, acc, pair, out):
 
 
 @njit(cache=True)
-def _surface_distance_kernel(Na, Nb, SA, SB, Pa, xf, best, eps, split_depth, k_groups, st, sv, pair, cand, cval, geom,
-                             sval, tmp, res, sst, out):
-    """The surfaces' distance near the IST's minimum ``best`` (``xf`` already posed): the deepest
-    ``k_groups`` groups within ``best + eps`` (where the surfaces' closest points lie) measured
-    on the meshes. out: smallest value, point on A (3), point on B (3), normal A→B (3), all
-    world; returns the number of groups measured (0: none, ``out`` untouched) or an error code."""
-    n, code, _ = tv.multipoint(Na, Nb, xf, st, sv, split_depth, best + eps, cand, 0, cand, cval, pair)  # no seeds
+def _surface_distance_kernel(Na, Nb, SA, SB, Pa, best, eps, split_depth, k_groups, tr, pair, G, M, out):
+    """The surfaces' distance near the IST's minimum ``best`` (``tr.xf`` already posed): the
+    deepest ``k_groups`` groups within ``best + eps`` (where the surfaces' closest points lie)
+    measured on the meshes. out: smallest value, point on A (3), point on B (3), normal A→B
+    (3), all world; returns the number of groups measured (0: none, ``out`` untouched) or an
+    error code. ``G``: ``_Groups`` (its coherence fields unused), ``M``: ``_Measure``."""
+    xf = tr.xf
+    n, code, _ = tv.multipoint(Na, Nb, xf, tr.st, tr.sv, split_depth, best + eps, G.cand, 0, G.cand, G.cval, pair)
     if code != tv.OK:
         return code
-    n = nw.deepest(cand, cval, n, k_groups)
-    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, n, np.inf, eps, geom, sval, tmp, res, sst, sf.EITHER)
-    j = nw.smallest(sval, m)
+    n = nw.deepest(G.cand, G.cval, n, k_groups)
+    m, _ = nw.measure(SA, SB, Na, Nb, xf, G.cand, n, np.inf, eps, G.geom, M.sval, M.tmp, M.res, M.sst, sf.EITHER)
+    j = nw.smallest(M.sval, m)
     if j < 0:
         return 0
-    g = geom[j]
-    h = 0.5 * sval[j]  # the point is midway between A's point and B's, along the normal
-    out[0] = sval[j]
+    g = G.geom[j]
+    v = M.sval[j]
+    h = 0.5 * v  # the point is midway between A's point and B's, along the normal
+    out[0] = v
     _world_point(Pa, g[9] - h * g[0], g[10] - h * g[1], g[11] - h * g[2], out, 1)
     _world_point(Pa, g[9] + h * g[0], g[10] + h * g[1], g[11] + h * g[2], out, 4)
     _world_vec(Pa, g[0], g[1], g[2], out, 7)
@@ -197,30 +216,26 @@ def _surface_distance_kernel(Na, Nb, SA, SB, Pa, xf, best, eps, split_depth, k_g
 
 
 @njit(cache=True)
-def _surface_contacts_kernel(
-    Na, Nb, SA, SB, Pa, Pb, split_depth, margin, eps, k_groups, k_max,
-    xf, st, sv, pair, prev, n_prev, cand, cval, chosen, geom, dmin, sval, tmp, res, sst, pos, nrm, dep, ids, info,
-):
-    """Surface contacts into ``pos, nrm, dep, ids`` (world frame): the groups below
-    ``margin + eps`` by the IST, the deepest ``k_groups`` measured on the meshes, those below
-    ``margin`` kept (deepest, then spread, one per point). ``info``: count, groups, visits."""
+def _surface_contacts_kernel(Na, Nb, SA, SB, Pa, Pb, split_depth, margin, eps, k_groups, k_max, tr, pair, G, M, out):
+    """Surface contacts into ``out`` (``_Contacts``): the groups below ``margin + eps`` by the
+    IST, the deepest ``k_groups`` by the surfaces (``narrow.screen``) measured on the meshes,
+    those below ``margin`` kept (deepest, then spread, one per point)."""
+    xf = tr.xf
     if not tv.relative_pose(Pa, Pb, xf):
         return tv.BAD_POSE
-    n, code, visits = tv.multipoint(Na, Nb, xf, st, sv, split_depth, margin + eps, prev, n_prev[0], cand, cval, pair)
+    n, code, visits = tv.multipoint(Na, Nb, xf, tr.st, tr.sv, split_depth, margin + eps, G.prev, G.n_prev[0], G.cand,
+                                    G.cval, pair)
     if code != tv.OK:
-        n_prev[0] = 0
+        G.n_prev[0] = 0
         return code
-    for i in range(n):  # every group seeds next frame's search
-        for c in range(4):
-            prev[i, c] = cand[i, c]
-    n_prev[0] = n
-    info[1] = n
-    info[2] = visits
-    k = nw.screen(SA, SB, Na, Nb, xf, cand, cval, n, k_groups, geom, tmp, sst)
-    m, _ = nw.measure(SA, SB, Na, Nb, xf, cand, k, margin, eps, geom, sval, tmp, res, sst, sf.EITHER)
-    k = nw.distinct(geom, chosen, spread(geom, 9, sval, m, k_max, chosen, dmin), eps)
-    _write_contacts(Pa, geom, sval, cand, chosen, k, pos, nrm, dep, ids)
-    info[0] = k
+    _keep_groups(G, n)
+    out.info[1] = n
+    out.info[2] = visits
+    k = nw.screen(SA, SB, Na, Nb, xf, G.cand, G.cval, n, k_groups, G.geom, M.tmp, M.sst)
+    m, _ = nw.measure(SA, SB, Na, Nb, xf, G.cand, k, margin, eps, G.geom, M.sval, M.tmp, M.res, M.sst, sf.EITHER)
+    k = nw.distinct(G.geom, G.chosen, spread(G.geom, 9, M.sval, m, k_max, G.chosen, G.dmin), eps)
+    _write_contacts(Pa, G.geom, M.sval, G.cand, G.chosen, k, out)
+    out.info[0] = k
     return tv.OK
 
 
@@ -407,6 +422,8 @@ class Query:
         self._sres = np.zeros(7)
         self._sst = np.zeros(sf.STACK, np.int64)
         self._sout = np.zeros(10)
+        self._tr = _Traversal(self._xf, self._st, self._sv)
+        self._measure = _Measure(self._sval, self._stmp, self._sres, self._sst)
         self._resize_contacts(max_contacts)
 
     def _narrow(self, narrowphase):
@@ -421,10 +438,8 @@ class Query:
     def _resize_contacts(self, k):
         self._k = k
         self._chosen = np.zeros(k, np.int64)
-        self._pos = np.zeros((k, 3))
-        self._nrm = np.zeros((k, 3))
-        self._dep = np.zeros(k)
-        self._ids = np.zeros((k, 4), np.int64)
+        self._groups = _Groups(self._cand, self._cval, self._prev, self._n_prev, self._chosen, self._geom, self._dmin)
+        self._out = _Contacts(np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k), np.zeros((k, 4), np.int64), self._info)
 
     def reset(self):
         """Forget the coherence state (next queries start from the roots)."""
@@ -499,9 +514,8 @@ class Query:
         SA, SB = self.surfaces
         o = self._sout
         code = _surface_distance_kernel(
-            self.Na, self.Nb, SA, SB, Pa, self._xf, r.distance, self.error_bound, 3, self.surface_groups,
-            self._st, self._sv, self._mpair, self._cand, self._cval, self._geom, self._sval, self._stmp, self._sres,
-            self._sst, o,
+            self.Na, self.Nb, SA, SB, Pa, r.distance, self.error_bound, 3, self.surface_groups, self._tr, self._mpair,
+            self._groups, self._measure, o,
         )
         self._check(code)
         r.narrowphase = "surface"
@@ -609,28 +623,26 @@ class Query:
             SA, SB = self.surfaces
             code = _surface_contacts_kernel(
                 self.Na, self.Nb, SA, SB, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"), int(split_depth),
-                float(margin), self.error_bound, self.surface_groups, k, self._xf, self._st, self._sv, self._cpair,
-                self._prev, self._n_prev, self._cand, self._cval, self._chosen, self._geom, self._dmin, self._sval,
-                self._stmp, self._sres, self._sst, self._pos, self._nrm, self._dep, self._ids, self._info,
+                float(margin), self.error_bound, self.surface_groups, k, self._tr, self._cpair, self._groups,
+                self._measure, self._out,
             )
         else:
             code = _contacts_kernel(
-                self.Na, self.Nb, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"),
-                m, int(split_depth), float(margin), k,
-                self._xf, self._st, self._sv, self._cpair, self._prev, self._n_prev, self._cand, self._cval,
-                self._chosen, self._geom, self._dmin, self._pos, self._nrm, self._dep, self._ids, self._info,
+                self.Na, self.Nb, _pose(pose_a, "pose_a"), _pose(pose_b, "pose_b"), m, int(split_depth),
+                float(margin), k, self._tr, self._cpair, self._groups, self._out,
             )
         self._check(code)
-        n = int(self._info[0])
+        o = self._out
+        n = int(o.info[0])
         r = ContactResult()
         r.count = n
-        r.positions = self._pos[:n].copy()
-        r.normals = self._nrm[:n].copy()
-        r.depths = self._dep[:n].copy()
-        r.leaf_pairs = self._ids[:n, 0:2].copy()
-        r.groups = self._ids[:n, 2:4].copy()
-        r.candidates = int(self._info[1])
-        r.visits = int(self._info[2])
+        r.positions = o.pos[:n].copy()
+        r.normals = o.nrm[:n].copy()
+        r.depths = o.dep[:n].copy()
+        r.leaf_pairs = o.ids[:n, 0:2].copy()
+        r.groups = o.ids[:n, 2:4].copy()
+        r.candidates = int(o.info[1])
+        r.visits = int(o.info[2])
         r.error_bound = self.error_bound
         r.narrowphase = narrow
         return r
