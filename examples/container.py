@@ -11,8 +11,9 @@ must still push it back out of the side it came in by.
 
 MuJoCo collides mesh geoms as their convex hulls, and the hull of a cup is a closed cylinder:
 the objects come to rest on an invisible lid. With ``mjist.load_model`` the same scene gets
-Inner Sphere Tree contacts and the objects land on the cup's floor. MuJoCo's mesh-SDF geoms
-(``type="sdf"``) also get there, at a higher cost per step.
+Inner Sphere Tree contacts and the objects land on the cup's floor, with sphere contacts (the
+default) and with contacts on the true surfaces (``narrowphase="surface"``). MuJoCo's mesh-SDF
+geoms (``type="sdf"``) also get there, at a higher cost per step.
 """
 from __future__ import annotations
 
@@ -111,7 +112,8 @@ def _where(p) -> str:
 
 
 def run(folder=None, seconds: float = 1.5) -> dict:
-    """The drop with IST contacts, MuJoCo's convex hulls and MuJoCo's mesh-SDF."""
+    """The drop with IST contacts (sphere contacts, ``mjist.load_model``'s default, and
+    ``narrowphase="surface"``), MuJoCo's convex hulls and MuJoCo's mesh-SDF."""
     import mjist
 
     folder = folder or tempfile.mkdtemp(prefix="mjist-container-")
@@ -121,12 +123,13 @@ def run(folder=None, seconds: float = 1.5) -> dict:
     sdf_xml = Path(folder) / "container_sdf.xml"
     sdf_xml.write_text(scene_xml(paths, "sdf"))
     out = {}
-    model, handle = mjist.load_model(xml)
-    try:
-        out["ist"] = drop(model, seconds)
-        out["ist"]["error_bound_mm"] = max(p.error_bound for p in handle.pairs) * 1e3
-    finally:
-        handle.detach()
+    for mode, narrowphase in (("ist", "spheres"), ("ist surface", "surface")):
+        model, handle = mjist.load_model(xml, narrowphase=narrowphase)
+        try:
+            out[mode] = drop(model, seconds)
+            out[mode]["error_bound_mm"] = max(p.error_bound for p in handle.pairs) * 1e3
+        finally:
+            handle.detach()
     out["native hull"] = drop(mujoco.MjModel.from_xml_path(str(xml)), seconds)
     out["native mesh-SDF"] = drop(mujoco.MjModel.from_xml_path(str(sdf_xml)), seconds)
     ref = out["native mesh-SDF"]["objects"]

@@ -60,6 +60,7 @@ def run(groups: int, poses: int, seeds=(1, 2)) -> dict:
             rng = np.random.default_rng(seed)
             for _ in range(poses):
                 d = mujoco.MjData(model)  # each pose a first touch: no contacts held from the last one
+                h.forget(d)  # (a freed MjData's slot, at the same address and time, would carry them over)
                 mujoco.mj_resetDataKeyframe(model, d, occ)
                 d.qpos[:3] += [np.radians(rng.uniform(-0.3, 0.6)), rng.uniform(-3e-4, 3e-4), rng.uniform(-3e-4, 3e-4)]
                 t = time.perf_counter()

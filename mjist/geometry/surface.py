@@ -312,11 +312,149 @@ RING_MAX = 64  # faces around one vertex a walk looks at, at most
 
 
 @njit(cache=True)
+def _ray_box(ox, oy, oz, ix, iy, iz, NODE, i, tmax):
+    """Whether the ray ``o + t d`` (``i``: 1/d per axis) meets node ``i``'s box for some
+    0 ≤ t < ``tmax``."""
+    t0 = 0.0
+    t1 = tmax
+    for k, o, inv in ((0, ox, ix), (1, oy, iy), (2, oz, iz)):
+        a = (NODE[i, k] - o) * inv
+        b = (NODE[i, 3 + k] - o) * inv
+        if a > b:
+            a, b = b, a
+        t0 = max(t0, a)
+        t1 = min(t1, b)
+        if t0 > t1:
+            return False
+    return True
+
+
+@njit(cache=True)
+def ray_exit(S, ox, oy, oz, dx, dy, dz, stack):
+    """Distance along the unit direction ``d`` from ``o`` to the first triangle of ``S`` the ray
+    crosses (t > 0; ``np.inf``: none), over the BVH. From a point inside a closed surface, how
+    far the point must move along ``d`` to leave it there."""
+    NODE, TRI = S[0], S[1]
+    ix = 1.0 / dx if dx != 0.0 else 1e300
+    iy = 1.0 / dy if dy != 0.0 else 1e300
+    iz = 1.0 / dz if dz != 0.0 else 1e300
+    best = np.inf
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        i = stack[sp]
+        if not _ray_box(ox, oy, oz, ix, iy, iz, NODE, i, best):
+            continue
+        c = NODE[i, 6]
+        if c >= 0.0:
+            stack[sp] = int(c)
+            stack[sp + 1] = int(NODE[i, 7])
+            sp += 2
+            continue
+        t0 = int(NODE[i, 7])
+        for t in range(t0, t0 - int(c)):
+            T = TRI[t]
+            e1x, e1y, e1z = T[3] - T[0], T[4] - T[1], T[5] - T[2]
+            e2x, e2y, e2z = T[6] - T[0], T[7] - T[1], T[8] - T[2]
+            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            det = e1x * px + e1y * py + e1z * pz
+            if det == 0.0:
+                continue
+            inv = 1.0 / det
+            sx, sy, sz = ox - T[0], oy - T[1], oz - T[2]
+            u = (sx * px + sy * py + sz * pz) * inv
+            if u < 0.0 or u > 1.0:
+                continue
+            qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+            v = (dx * qx + dy * qy + dz * qz) * inv
+            if v < 0.0 or u + v > 1.0:
+                continue
+            h = (e2x * qx + e2y * qy + e2z * qz) * inv
+            if 0.0 < h < best:
+                best = h
+    return best
+
+
+@njit(cache=True)
 def _on_face(S, g, px, py, pz):
     """Squared distance from p to face ``g``, the closest point and its feature."""
     T = S[1][S[7][g]]
     x, y, z, feat = bvh.closest_on_triangle_xyz(px, py, pz, T[0], T[1], T[2], T[3], T[4], T[5], T[6], T[7], T[8])
     return (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2, x, y, z, feat
+
+
+@njit(cache=True)
+def _ring_edge(corner, side):
+    """The edge of a face's ``corner`` (0, 1, 2) its ring around that vertex leaves by first
+    (``side`` 0) or second: a (ab, ac), b (ab, bc), c (ac, bc), as ``ADJ``'s columns."""
+    if side == 0:
+        return 0 if corner < 2 else 1
+    return 1 if corner == 0 else 2
+
+
+@njit(cache=True)
+def _ring_next(F, ADJ, v, prev, cur):
+    """The face after ``cur`` around vertex ``v``, walking away from ``prev`` (-1: a border)."""
+    k = 0 if F[cur, 0] == v else (1 if F[cur, 1] == v else 2)
+    nxt = ADJ[cur, _ring_edge(k, 0)]
+    if nxt == prev:
+        nxt = ADJ[cur, _ring_edge(k, 1)]
+    return nxt
+
+
+@njit(cache=True)
+def _corner(S, f, k):
+    """The position of corner ``k`` of face ``f``."""
+    T = S[1][S[7][f]]
+    return T[3 * k], T[3 * k + 1], T[3 * k + 2]
+
+
+@njit(cache=True)
+def lowest_inside(SB, f, SA, xf, dx, dy, dz, stack, tmp):
+    """The vertex of ``SB`` lowest along the direction ``d`` (B's frame) that a walk from face
+    ``f`` over B's vertex rings reaches while staying inside ``SA`` (``xf``: B's pose in A's
+    frame): B's local extreme point in ``d`` within the overlap. Returns it in A's frame and
+    whether one of ``f``'s corners lies inside A at all. ``tmp``: 7 floats."""
+    F, ADJ = SB[3], SB[6]
+    bf, bk = -1, 0
+    best = np.inf
+    for k in range(3):
+        x, y, z = _corner(SB, f, k)
+        h = x * dx + y * dy + z * dz
+        if h < best:
+            ax, ay, az = to_a(xf, x, y, z)
+            if _query(SA, ax, ay, az, -1, np.inf, stack, tmp)[0] >= 0 and tmp[0] < 0.0:
+                bf, bk, best = f, k, h
+    if bf < 0:
+        return 0.0, 0.0, 0.0, False
+    for _ in range(WALK_STEPS):
+        v = F[bf, bk]
+        nf, nk = -1, 0
+        nb = best
+        for side in range(2):
+            prev = bf
+            cur = ADJ[bf, _ring_edge(bk, side)]
+            n = 0
+            while cur >= 0 and cur != bf and n < RING_MAX:
+                n += 1
+                for k in range(3):
+                    if F[cur, k] != v:
+                        x, y, z = _corner(SB, cur, k)
+                        h = x * dx + y * dy + z * dz
+                        if h < nb:
+                            ax, ay, az = to_a(xf, x, y, z)
+                            if _query(SA, ax, ay, az, -1, np.inf, stack, tmp)[0] >= 0 and tmp[0] < 0.0:
+                                nf, nk, nb = cur, k, h
+                prev, cur = cur, _ring_next(F, ADJ, v, prev, cur)
+            if cur == bf:
+                break
+        if nf < 0:
+            break
+        bf, bk, best = nf, nk, nb
+    x, y, z = _corner(SB, bf, bk)
+    ax, ay, az = to_a(xf, x, y, z)
+    return ax, ay, az, True
 
 
 @njit(cache=True)
@@ -346,23 +484,15 @@ def _walk(S, f, px, py, pz, out):
             v = F[f, feat]
             # around the vertex both ways from f (the second only when the first meets a border)
             for side in range(2):
-                e = (0 if feat < 2 else 1) if side == 0 else (1 if feat == 0 else 2)
                 prev = f
-                cur = ADJ[f, e]
+                cur = ADJ[f, _ring_edge(feat, side)]
                 n = 0
                 while cur >= 0 and cur != f and n < RING_MAX:
                     n += 1
                     e2, x, y, z, ft = _on_face(S, cur, px, py, pz)
                     if e2 < bd2:
                         bg, bd2, bx, by, bz, bfeat = cur, e2, x, y, z, ft
-                    k = 0 if F[cur, 0] == v else (1 if F[cur, 1] == v else 2)
-                    ea = 0 if k < 2 else 1  # the two edges of corner k: a (ab, ac), b (ab, bc), c (ac, bc)
-                    eb = 1 if k == 0 else 2
-                    nxt = ADJ[cur, ea]
-                    if nxt == prev:
-                        nxt = ADJ[cur, eb]
-                    prev = cur
-                    cur = nxt
+                    prev, cur = cur, _ring_next(F, ADJ, v, prev, cur)
                 if cur == f:
                     break
         if bg < 0:
@@ -398,6 +528,13 @@ def _near(S, x, y, z, stack, within, out):
         if f >= 0:
             return f
     return _signed_closest_face(S, x, y, z, stack, np.inf, out)
+
+
+@njit(cache=True)
+def closest_face(S, x, y, z, stack, out):
+    """The face of ``S`` nearest the point (``_query``: from the grid when it holds the point,
+    else the BVH; ``out`` gets ``signed_closest``'s answer); -1 for an empty surface."""
+    return _query(S, x, y, z, -1, np.inf, stack, out)[0]
 
 
 @njit(cache=True)

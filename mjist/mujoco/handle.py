@@ -119,8 +119,10 @@ class Handle:
 
     def forget(self, data) -> None:
         """Forget the coherence and device state kept for ``data`` (e.g. a new MjData that may sit
-        at the address of a freed one; answers of the collision hook never depend on it, the
-        coupling's handle-velocity estimate does for one step)."""
+        at the address of a freed one, at the same time: a reset to an earlier time is seen).
+        Sphere contacts never depend on it; surface contacts held from a pose within
+        ``mjist_surface_hold`` and the side of approach of deep ones do, and the coupling's
+        handle-velocity estimate does for one step."""
         if self._entry is not None:
             keys = self._entry.arrays["keys"]
             mine = np.flatnonzero((keys & layout.KEY_DATA_MASK) == int(data._address))

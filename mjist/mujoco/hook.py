@@ -68,6 +68,7 @@ from .layout import (
     F_NPN,
     F_OK,
     F_PN,
+    F_PT,
     F_REF,
     F_TIME,
     FW,
@@ -324,7 +325,7 @@ def pair_contacts(E, m, d, con, g1, g2, margin, p, cap, scratch, soft):
                                  count, st, sv, bacc, pair)
         else:
             k = _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap,
-                                  scratch, count, fst, nheld)
+                                  scratch, count, fst, nheld, step)
             if hold > 0.0:
                 _hold(fst, xf, Pa, con, k, geom, chosen)
         if k == 0:
@@ -629,6 +630,7 @@ def _write_contacts(E, Na, Nb, Xa, Xb, xf, Pa, cand, cval, chosen, k, geom, thr,
             mem[j, r] = g[9 + r]
             mem[j, 3 + r] = g[r]
     fst[F_NPN] = keep
+    fst[F_PT] = fst[F_TIME]
 
 
 # a deep contact's normal may turn this far from last step's (cosine) before it is taken for a
@@ -718,11 +720,12 @@ def _measure(E, SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, s
 
 @njit(cache=True)
 def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geom, chosen, dmin, con, cap, scratch,
-                      count, fst, nheld):
+                      count, fst, nheld, step):
     """Surface narrow phase: the distances on the meshes of the deepest of the ``n`` groups by
     the IST (``narrow.deepest``), and of the ``nheld`` contacts held until this call, and those
-    within ``margin`` as contacts into ``con`` (the deepest, then the most spread, one per point).
-    Returns the count; ``chosen[0]`` indexes the deepest in ``cand``."""
+    within ``margin`` as contacts into ``con`` (the deepest, then the most spread, one per point),
+    each pushing out the side it came in by (``_surface_approach``; ``step``: how far the pair
+    moved since the last call). Returns the count; ``chosen[0]`` indexes the deepest in ``cand``."""
     sval, tmp, res, sst = _surface_scratch(E, scratch, cap)
     SA = _surface(E, g1)
     SB = _surface(E, g2)
@@ -735,9 +738,103 @@ def _surface_contacts(E, Na, Nb, xf, Pa, g1, g2, cand, cval, n, margin, eps, geo
     m = _remeasure_held(fst, nheld, SA, SB, xf, margin, eps, cand, geom, sval, m, E[Entry.NCAND], tmp, res, sst, count)
     k = spread(geom, 9, sval, m, cap, chosen, dmin)
     kk = nw.distinct(geom, chosen, k, eps)  # groups whose descents ended at one point give one contact
+    _surface_approach(fst, SA, SB, xf, geom, sval, chosen, kk, step, eps, sst, res)
     for j in range(kk):
         _write_row(out[j], sval[chosen[j]], Pa, geom[chosen[j]])
     return kk
+
+
+# how far from a surface contact, in its depths, last call's contacts are looked for to tell its
+# side of approach: farther finds one for every point of a wide face pressed past a wall's middle
+# (last call's contacts are few and spread out), nearer keeps apart opposite contacts of a thin
+# part squeezed between two faces
+APPROACH_REACH = 4.0
+# a surface contact deeper than this multiple of ε1 + ε2 takes its depth along its side of
+# approach when that is deeper (``surface.lowest_inside``, no longer a signed distance): lower
+# extends that to shallower contacts (a walk over B's vertices each), higher leaves deeper ones
+# levelled off at a wall's middle
+APPROACH_DEEP = 1.0
+
+
+@njit(cache=True)
+def _surface_approach(fst, SA, SB, xf, geom, sval, chosen, k, step, eps, stack, tmp):
+    """The side of approach for surface contacts (``chosen[:k]``, rows of ``geom`` and
+    ``sval``), which are then remembered for the next call.
+
+    A point pressed past the middle of a wall is nearer the far side: its signed distance gives
+    the depth to there and a normal that pushes it on through. A penetrating contact whose
+    normal turns more than 60° (``TURN_COS``) from last call's contact nearest to it (within
+    ``APPROACH_REACH`` times its depth, the pair having moved less than the depth since, and
+    the MjData's time having advanced: a pose set by hand is no step) has crossed that middle: it
+    takes last call's normal. Its depth, and a deep contact's (``APPROACH_DEEP``)
+    when that is larger, is then measured along that side: how far B's lowest point inside A
+    near the contact (``surface.lowest_inside``; for a contact measured the reverse way, A's
+    point inside B) must move along the normal to leave the solid it is in
+    (``surface.ray_exit``), so the contact pushes it back the way it came, the deeper the
+    harder, and does not level off at the wall's middle. ``tmp``: 7 floats."""
+    mem = fst[F_PN:F_PN + 6 * KP].reshape((KP, 6))
+    nmem = int(fst[F_NPN]) if fst[F_PT] < fst[F_TIME] else 0
+    for j in range(k):
+        i = chosen[j]
+        v = sval[i]
+        reach = -APPROACH_REACH * v
+        if not (v < 0.0 and nmem > 0 and step < -v):
+            continue
+        g = geom[i]
+        best = -1
+        bd = reach * reach
+        for m in range(nmem):
+            d2 = (mem[m, 0] - g[9]) ** 2 + (mem[m, 1] - g[10]) ** 2 + (mem[m, 2] - g[11]) ** 2
+            if d2 < bd:
+                bd = d2
+                best = m
+        if best < 0:
+            continue
+        flipped = mem[best, 3] * g[0] + mem[best, 4] * g[1] + mem[best, 5] * g[2] < TURN_COS
+        if not (flipped or -v > APPROACH_DEEP * eps):
+            continue
+        nx, ny, nz = (mem[best, 3], mem[best, 4], mem[best, 5]) if flipped else (g[0], g[1], g[2])
+        if int(g[nw.WAY]) == sf.REVERSE:
+            # A's point inside B leaves B along -n as B moves along n
+            px, py, pz = g[9] - 0.5 * v * g[0], g[10] - 0.5 * v * g[1], g[11] - 0.5 * v * g[2]
+            bx, by, bz = sf.to_b(xf, px, py, pz)
+            dx = -(xf[0] * nx + xf[3] * ny + xf[6] * nz)  # -n in B's frame: -R^T n
+            dy = -(xf[1] * nx + xf[4] * ny + xf[7] * nz)
+            dz = -(xf[2] * nx + xf[5] * ny + xf[8] * nz)
+            t = sf.ray_exit(SB, bx, by, bz, dx, dy, dz, stack)
+            h = -0.5
+        else:
+            # B's point inside A, then B's lowest point along -n inside A near it, leaves A along n
+            px, py, pz = g[9] + 0.5 * v * g[0], g[10] + 0.5 * v * g[1], g[11] + 0.5 * v * g[2]
+            bx, by, bz = sf.to_b(xf, px, py, pz)
+            f = sf.closest_face(SB, bx, by, bz, stack, tmp)
+            t = np.inf
+            if f >= 0:  # lowest along n: n in B's frame, R^T n
+                dx = xf[0] * nx + xf[3] * ny + xf[6] * nz
+                dy = xf[1] * nx + xf[4] * ny + xf[7] * nz
+                dz = xf[2] * nx + xf[5] * ny + xf[8] * nz
+                lx, ly, lz, ok = sf.lowest_inside(SB, f, SA, xf, dx, dy, dz, stack, tmp)
+                if ok:
+                    # its depth, at the contact's own place (contacts of a face pressed flat stay spread)
+                    t = sf.ray_exit(SA, lx, ly, lz, nx, ny, nz, stack)
+                    lo = (lx - px) * nx + (ly - py) * ny + (lz - pz) * nz
+                    px, py, pz = px + lo * nx, py + lo * ny, pz + lo * nz
+            if not t < np.inf:
+                t = sf.ray_exit(SA, px, py, pz, nx, ny, nz, stack)
+            h = 0.5
+        if not t < np.inf or not (flipped or t > -v):
+            continue
+        g[0], g[1], g[2] = nx, ny, nz
+        g[9], g[10], g[11] = px + h * t * nx, py + h * t * ny, pz + h * t * nz
+        sval[i] = -t
+    keep = min(k, KP)
+    for j in range(keep):
+        g = geom[chosen[j]]
+        for r in range(3):
+            mem[j, r] = g[9 + r]
+            mem[j, 3 + r] = g[r]
+    fst[F_NPN] = keep
+    fst[F_PT] = fst[F_TIME]
 
 
 @njit(cache=True)

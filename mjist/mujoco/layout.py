@@ -147,10 +147,11 @@ I_PAIR, I_NPREV, I_NFRONT, I_PREV, I_FRONT, IW = _offsets(2, 1, 1, 4 * KP, 4 * N
 H_DIST, H_POINT, H_NORMAL, H_B, H_WAY, HOLD_W = _offsets(1, 3, 3, 3, 1)
 # float64 words: distance-skip reference (pose, distance, valid), slot time, front reference
 # (valid, pose, threshold reached, contact threshold), last pose (+ valid), the margin it serves,
-# last step's contacts (count; per contact: point, normal, A's frame) for the side of approach;
+# last step's contacts (count; per contact: point, normal, A's frame; the time they were
+# written) for the side of approach;
 # the surface contacts held (valid, the pose they were measured at, count; per contact ``HOLD_W``)
-F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, F_NPN, F_PN, F_HOK, F_HXF, F_HN, F_HC, FW = \
-    _offsets(12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1, 1, 6 * KP, 1, 12, 1, HOLD_W * KP)
+F_REF, F_D, F_OK, F_TIME, F_FOK, F_FXF, F_FT0, F_FTHR, F_LXF, F_LOK, F_MARGIN, F_NPN, F_PN, F_PT, F_HOK, F_HXF, F_HN, \
+    F_HC, FW = _offsets(12, 1, 1, 1, 1, 12, 1, 1, 12, 1, 1, 1, 6 * KP, 1, 1, 12, 1, HOLD_W * KP)
 
 # ---- slot keys: an MjData address and a pair index in one int64 ---------------------------
 KEY_SHIFT = 48  # user-space addresses fit in 48 bits (x86-64, AArch64)

@@ -179,3 +179,33 @@ def test_local_distance_is_a_true_distance_near_the_jaws_occlusion():
             ok, out = _local(SA, SB, xf_of(P), x, 30, 1e-4)
             assert ok and d - 1e-9 <= out[0] <= first
             assert out[0] <= d + 2e-6
+
+
+@njit  # not cached: numba would not see the mjist kernels change
+def _rays(S, O, D, out):
+    stack = np.empty(sf.STACK, np.int64)
+    for i in range(O.shape[0]):
+        out[i] = sf.ray_exit(S, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], stack)
+
+
+def test_ray_exit_is_the_first_crossing_trimesh_finds():
+    """From points inside and outside a sphere mesh, in random directions: the distance to the
+    first triangle crossed equals trimesh's ray test, and a ray that misses gives inf."""
+    m = trimesh.creation.icosphere(3, radius=1.0)
+    surf = sf.build_surface(m.vertices, m.faces)
+    rng = np.random.default_rng(0)
+    O = rng.uniform(-1.5, 1.5, (300, 3))
+    D = rng.normal(size=(300, 3))
+    D /= np.linalg.norm(D, axis=1)[:, None]
+    out = np.empty(300)
+    _rays(surf.views(), O, D, out)
+    loc, ray, _ = m.ray.intersects_location(O, D, multiple_hits=True)
+    for i in range(300):
+        hits = np.linalg.norm(loc[ray == i] - O[i], axis=1)
+        hits = hits[hits > 1e-12]
+        if len(hits):
+            assert out[i] == pytest.approx(hits.min(), abs=1e-9), i
+        else:
+            assert out[i] == np.inf, i
+    inside = np.linalg.norm(O, axis=1) < 0.95
+    assert inside.sum() > 20 and np.isfinite(out[inside]).all()  # from inside a closed surface every ray leaves

@@ -261,3 +261,39 @@ def test_jaw_closure_rests_on_the_true_surfaces(cache):
     assert res["hook"]["held_calls"] > res["steps"] // 3  # at rest the contacts are held, not measured
     assert res["true_distance_mm"] < 0.02
     assert res["hook"]["failed"] == 0
+
+
+SLAB_XML = """
+<mujoco>
+  <custom><text name="mjist_narrowphase" data="surface"/></custom>
+  <asset><mesh name="slab" file="{slab}"/><mesh name="ball" file="{ball}"/></asset>
+  <worldbody>
+    <geom name="slab" type="mesh" mesh="slab"/>
+    <body name="ball"><freejoint/><geom name="ball" type="mesh" mesh="ball"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_a_ball_pressed_past_a_walls_middle_is_pushed_back_the_way_it_came(tmp_path, cache):
+    """A 10 mm ball pressed into a 6 mm slab from above, 2 mm deep, then step by step to 4.5 mm
+    (its lowest point past the slab's middle, nearer the underside): the contacts keep pushing
+    it up, as deep as its lowest point is below the top face, spread over where it overlaps.
+    B's points' own signed distances level off at the slab's middle (3 mm) there, and the
+    lowest point's says 1.5 mm, downwards."""
+    trimesh.creation.box((0.06, 0.06, 0.006)).export(tmp_path / "slab.obj")  # top face z = 3 mm
+    trimesh.creation.icosphere(4, radius=0.005).export(tmp_path / "ball.obj")
+    xml = SLAB_XML.format(slab=tmp_path / "slab.obj", ball=tmp_path / "ball.obj")
+    m = mujoco.MjModel.from_xml_string(xml)
+    with A.attach(m, cache_dir=cache):
+        d = mujoco.MjData(m)
+        for depth in (0.002, 0.003, 0.0035, 0.004, 0.0045):
+            d.time += 0.002  # steps of a trajectory: a pose set by hand at the same time has no side
+            d.qpos[:3] = [0.0, 0.0, 0.003 + 0.005 - depth]
+            d.qpos[3:7] = [1, 0, 0, 0]
+            mujoco.mj_forward(m, d)
+            rows = [(c.dist, c.frame[2], *c.pos) for c in d.contact[:d.ncon]]
+            assert rows and all(nz > 0.99 for _, nz, *_ in rows), (depth, rows)
+            assert min(r[0] for r in rows) == pytest.approx(-depth, abs=5e-5), (depth, rows)
+    spread = np.ptp(np.array([r[2:4] for r in rows]), axis=0)
+    assert len(rows) > 1 and spread.max() > 0.002  # not all at the lowest point
