@@ -623,14 +623,7 @@ def _write_contacts(E, Na, Nb, Xa, Xb, xf, Pa, cand, cval, chosen, k, geom, thr,
             count[Count.VISITS] += _blend_group(Na, Nb, xf, st, sv, cand[i, 0], cand[i, 1], 0.5 * (thr + cval[i]), E[Entry.NUP],
                                             bacc, pair, g)
         _write_row(out[j], cval[i] - offset, Pa, g)
-    keep = min(k, KP)
-    for j in range(keep):
-        g = geom[chosen[j]]
-        for r in range(3):
-            mem[j, r] = g[9 + r]
-            mem[j, 3 + r] = g[r]
-    fst[F_NPN] = keep
-    fst[F_PT] = fst[F_TIME]
+    _remember(fst, geom, chosen, k)
 
 
 # a deep contact's normal may turn this far from last step's (cosine) before it is taken for a
@@ -642,19 +635,39 @@ TURN_COS = 0.5
 def _side_of_approach(mem, nmem, g, reach):
     """Turn normal ``g[0:3]`` back to the side it came from: the normal of the remembered contact
     nearest to point ``g[9:12]`` when that one lies within ``reach`` and is more than 60° away."""
-    best = -1
-    bd = reach * reach
-    for m in range(nmem):
-        dx = mem[m, 0] - g[9]
-        dy = mem[m, 1] - g[10]
-        dz = mem[m, 2] - g[11]
-        d2 = dx * dx + dy * dy + dz * dz
-        if d2 < bd:
-            bd = d2
-            best = m
+    best = _nearest_remembered(mem, nmem, g, reach)
     if best >= 0 and mem[best, 3] * g[0] + mem[best, 4] * g[1] + mem[best, 5] * g[2] < TURN_COS:
         for r in range(3):
             g[r] = mem[best, 3 + r]
+
+
+@njit(cache=True)
+def _nearest_remembered(mem, nmem, g, reach):
+    """The row of ``mem[:nmem]`` (last call's contacts: point, normal) whose point is nearest
+    to ``g[9:12]``, within ``reach`` (-1: none)."""
+    best = -1
+    bd = reach * reach
+    for m in range(nmem):
+        d2 = (mem[m, 0] - g[9]) ** 2 + (mem[m, 1] - g[10]) ** 2 + (mem[m, 2] - g[11]) ** 2
+        if d2 < bd:
+            bd = d2
+            best = m
+    return best
+
+
+@njit(cache=True)
+def _remember(fst, geom, chosen, k):
+    """Keeps the contacts ``chosen[:k]`` (at most ``KP``; point and normal of their ``geom``
+    rows, A's frame) and the time, for the next call's side of approach."""
+    mem = fst[F_PN:F_PN + 6 * KP].reshape((KP, 6))
+    keep = min(k, KP)
+    for j in range(keep):
+        g = geom[chosen[j]]
+        for r in range(3):
+            mem[j, r] = g[9 + r]
+            mem[j, 3 + r] = g[r]
+    fst[F_NPN] = keep
+    fst[F_PT] = fst[F_TIME]
 
 
 @njit(cache=True)
@@ -781,13 +794,7 @@ def _surface_approach(fst, SA, SB, xf, geom, sval, chosen, k, step, eps, stack, 
         if not (v < 0.0 and nmem > 0 and step < -v):
             continue
         g = geom[i]
-        best = -1
-        bd = reach * reach
-        for m in range(nmem):
-            d2 = (mem[m, 0] - g[9]) ** 2 + (mem[m, 1] - g[10]) ** 2 + (mem[m, 2] - g[11]) ** 2
-            if d2 < bd:
-                bd = d2
-                best = m
+        best = _nearest_remembered(mem, nmem, g, reach)
         if best < 0:
             continue
         flipped = mem[best, 3] * g[0] + mem[best, 4] * g[1] + mem[best, 5] * g[2] < TURN_COS
@@ -827,14 +834,7 @@ def _surface_approach(fst, SA, SB, xf, geom, sval, chosen, k, step, eps, stack, 
         g[0], g[1], g[2] = nx, ny, nz
         g[9], g[10], g[11] = px + h * t * nx, py + h * t * ny, pz + h * t * nz
         sval[i] = -t
-    keep = min(k, KP)
-    for j in range(keep):
-        g = geom[chosen[j]]
-        for r in range(3):
-            mem[j, r] = g[9 + r]
-            mem[j, 3 + r] = g[r]
-    fst[F_NPN] = keep
-    fst[F_PT] = fst[F_TIME]
+    _remember(fst, geom, chosen, k)
 
 
 @njit(cache=True)
