@@ -107,14 +107,23 @@ def _words(address: int, n: int) -> np.ndarray:
 
 
 def _find_pointer(d, name: str, words: np.ndarray, anchor: int | None = None) -> int:
+    """Byte offset of the word holding ``d.<name>``'s address. The words read run past mjData
+    into other memory, which can hold the same address too: a hit counts only where the
+    introspection order puts it (mjData's pointer arrays are consecutive 8-byte fields), from
+    the ``anchor`` (geom_xpos's offset) or, for geom_xpos itself, with every probed field's
+    address where that order puts it."""
     ptr = getattr(d, name).ctypes.data
     hits = np.flatnonzero(words == np.uint64(ptr))
-    if len(hits) > 1 and anchor is not None:
-        # several words hold this address (an array at the start of a buffer): the pointer
-        # arrays of mjData are consecutive 8-byte fields, so the introspection order picks one
-        names = [f.name for f in _mj_structs.STRUCTS["mjData"].fields]
-        want = anchor + 8 * (names.index(name) - names.index("geom_xpos"))
-        hits = hits[hits * 8 == want]
+    names = [f.name for f in _mj_structs.STRUCTS["mjData"].fields]
+
+    def at(h, field):
+        i = h + names.index(field) - names.index("geom_xpos")
+        return 0 <= i < len(words) and int(words[i]) == getattr(d, field).ctypes.data
+
+    if anchor is not None:
+        hits = hits[hits * 8 == anchor + 8 * (names.index(name) - names.index("geom_xpos"))]
+    else:
+        hits = np.array([h for h in hits if all(at(h, f) for f in _POINTER_FIELDS)], np.int64)
     if len(hits) != 1:
         raise MuJoCoABIError(
             f"cannot locate mjData.{name} in this MuJoCo build ({len(hits)} candidate offsets): "

@@ -685,3 +685,22 @@ def test_passive_callback_chains_and_is_restored(cache):
         assert cb.value == count.address
     finally:
         cb.value = before
+
+
+def test_data_offsets_are_found_when_other_memory_holds_the_same_address():
+    """The probe reads past mjData into other memory, which can hold a copy of an array's
+    address (a cohort worker once found geom_xpos's twice and refused to run): the copies are
+    told apart by where mjData's field order puts every probed pointer."""
+    from mjist.mujoco import abi
+
+    m = mujoco.MjModel.from_xml_string(abi._PROBE_XML)
+    d = mujoco.MjData(m)
+    words = abi._words(d._address, 65536)
+    off = abi.data_offsets()
+    words[30000] = np.uint64(d.geom_xpos.ctypes.data)  # a stray copy beyond the struct
+    words[30001] = np.uint64(d.geom_xmat.ctypes.data)
+    assert abi._find_pointer(d, "geom_xpos", words) == off["geom_xpos"]
+    assert abi._find_pointer(d, "geom_xmat", words, off["geom_xpos"]) == off["geom_xmat"]
+    words[off["geom_xpos"] // 8] = 0  # and with the true one gone, the copies alone are refused
+    with pytest.raises(abi.MuJoCoABIError, match="geom_xpos"):
+        abi._find_pointer(d, "geom_xpos", words)
