@@ -390,13 +390,20 @@ def _ray_box(o, inv, lo, hi, node):
 
 @njit(cache=True)
 def _ray_triangle(ox, oy, oz, dx, dy, dz, V, F, f):
-    """Möller–Trumbore terms of the ray ``o + t d`` and face ``f``: the determinant (0 or tiny:
-    the ray runs along the face's plane), the barycentric ``u``, ``v``, the ray parameter ``t``
-    (meaningless when the determinant is 0) and the lengths of the face's edges ab, ac."""
-    a = F[f, 0]
-    ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
-    e1x, e1y, e1z = V[F[f, 1], 0] - ax, V[F[f, 1], 1] - ay, V[F[f, 1], 2] - az
-    e2x, e2y, e2z = V[F[f, 2], 0] - ax, V[F[f, 2], 1] - ay, V[F[f, 2], 2] - az
+    """``ray_triangle_xyz`` for face ``f`` of ``V``, ``F``."""
+    a, b, c = F[f, 0], F[f, 1], F[f, 2]
+    return ray_triangle_xyz(ox, oy, oz, dx, dy, dz, V[a, 0], V[a, 1], V[a, 2], V[b, 0], V[b, 1], V[b, 2],
+                            V[c, 0], V[c, 1], V[c, 2])
+
+
+@njit(cache=True)
+def ray_triangle_xyz(ox, oy, oz, dx, dy, dz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Möller–Trumbore terms of the ray ``o + t d`` and the triangle ``a, b, c``: the
+    determinant (0 or tiny: the ray runs along the triangle's plane), the barycentric ``u``,
+    ``v``, the ray parameter ``t`` (meaningless when the determinant is 0) and the lengths of
+    the edges ab, ac."""
+    e1x, e1y, e1z = bx - ax, by - ay, bz - az
+    e2x, e2y, e2z = cx - ax, cy - ay, cz - az
     # pv = d x e2
     pvx = dy * e2z - dz * e2y
     pvy = dz * e2x - dx * e2z

@@ -355,23 +355,9 @@ def ray_exit(S, ox, oy, oz, dx, dy, dz, stack):
         t0 = int(NODE[i, 7])
         for t in range(t0, t0 - int(c)):
             T = TRI[t]
-            e1x, e1y, e1z = T[3] - T[0], T[4] - T[1], T[5] - T[2]
-            e2x, e2y, e2z = T[6] - T[0], T[7] - T[1], T[8] - T[2]
-            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-            det = e1x * px + e1y * py + e1z * pz
-            if det == 0.0:
-                continue
-            inv = 1.0 / det
-            sx, sy, sz = ox - T[0], oy - T[1], oz - T[2]
-            u = (sx * px + sy * py + sz * pz) * inv
-            if u < 0.0 or u > 1.0:
-                continue
-            qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
-            v = (dx * qx + dy * qy + dz * qz) * inv
-            if v < 0.0 or u + v > 1.0:
-                continue
-            h = (e2x * qx + e2y * qy + e2z * qz) * inv
-            if 0.0 < h < best:
+            det, u, v, h, _, _ = bvh.ray_triangle_xyz(ox, oy, oz, dx, dy, dz, T[0], T[1], T[2], T[3], T[4], T[5],
+                                                      T[6], T[7], T[8])
+            if det != 0.0 and 0.0 <= u and 0.0 <= v and u + v <= 1.0 and 0.0 < h < best:
                 best = h
     return best
 
