@@ -111,7 +111,7 @@ def _find_pointer(d, name: str, words: np.ndarray, anchor: int | None = None) ->
     into other memory, which can hold the same address too: a hit counts only where the
     introspection order puts it (mjData's pointer arrays are consecutive 8-byte fields), from
     the ``anchor`` (geom_xpos's offset) or, for geom_xpos itself, with every probed field's
-    address where that order puts it."""
+    address where that order puts it, the first such block (the words start at mjData)."""
     ptr = getattr(d, name).ctypes.data
     hits = np.flatnonzero(words == np.uint64(ptr))
     names = [f.name for f in _mj_structs.STRUCTS["mjData"].fields]
@@ -124,6 +124,9 @@ def _find_pointer(d, name: str, words: np.ndarray, anchor: int | None = None) ->
         hits = hits[hits * 8 == anchor + 8 * (names.index(name) - names.index("geom_xpos"))]
     else:
         hits = np.array([h for h in hits if all(at(h, f) for f in _POINTER_FIELDS)], np.int64)
+        # the words start at mjData itself: a whole copy of its pointer block further on (the
+        # Python wrapper's, a freed neighbour's) lies beyond the struct, so the first one is mjData's
+        hits = hits[:1]
     if len(hits) != 1:
         raise MuJoCoABIError(
             f"cannot locate mjData.{name} in this MuJoCo build ({len(hits)} candidate offsets): "

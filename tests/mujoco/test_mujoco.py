@@ -701,6 +701,14 @@ def test_data_offsets_are_found_when_other_memory_holds_the_same_address():
     words[30001] = np.uint64(d.geom_xmat.ctypes.data)
     assert abi._find_pointer(d, "geom_xpos", words) == off["geom_xpos"]
     assert abi._find_pointer(d, "geom_xmat", words, off["geom_xpos"]) == off["geom_xmat"]
+    # a whole copy of the pointer block beyond the struct (as a cohort worker and `mjist occlusion`
+    # once met: "2 candidate offsets"): mjData's own block comes first
+    names = [f.name for f in abi._mj_structs.STRUCTS["mjData"].fields]
+    base = off["geom_xpos"] // 8 - names.index("geom_xpos")
+    block = words.copy()
+    for f in abi._POINTER_FIELDS:
+        block[40000 + names.index(f)] = words[base + names.index(f)]
+    assert abi._find_pointer(d, "geom_xpos", block) == off["geom_xpos"]
     words[off["geom_xpos"] // 8] = 0  # and with the true one gone, the copies alone are refused
     with pytest.raises(abi.MuJoCoABIError, match="geom_xpos"):
         abi._find_pointer(d, "geom_xpos", words)
