@@ -189,7 +189,7 @@ def _cmd_occlusion(args) -> int:
     return _user_errors("occlusion", lambda: occlusion.main(
         scene=args.scene, data=args.data, starts=args.starts, translation=args.translation, rotation_deg=args.rotation,
         threads=args.threads, seed=args.seed, top=args.top, out=args.out_dir, progress=not args.quiet,
-        pair=_pair_options(args), contact_map=not args.no_contact_map, picture=not args.no_picture))
+        pair={**_pair_options(args), "register": not args.given_pose}, contact_map=not args.no_contact_map, picture=not args.no_picture))
 
 
 def _cmd_scene(args) -> int:
@@ -348,14 +348,18 @@ def _add_occlusion(sub) -> None:
     oc.add_argument("scene", nargs="?", default=None, help="occlusion-search scene (default: models/occlusion_search.xml)")
     oc.add_argument("--data", help="folder with maxilla + mandible meshes (e.g. ../shared/data/jaw): builds its scene")
     oc.add_argument("--starts", type=int, default=64, help="starting poses (default 64)")
-    oc.add_argument("--translation", type=float, default=2e-3, help="start shifts up to this far, metres (default 0.002)")
-    oc.add_argument("--rotation", type=float, default=3.0, help="start turns up to this many degrees (default 3)")
+    oc.add_argument("--translation", type=float, default=None,
+                    help="start shifts up to this far, metres (default 0.002; 0.003 around a registered pair)")
+    oc.add_argument("--rotation", type=float, default=None, help="start turns up to this many degrees (default 3; 5 registered)")
     oc.add_argument("--threads", type=int, default=None, help="rollout threads (default: CPU count)")
     oc.add_argument("--seed", type=int, default=0)
     oc.add_argument("--top", type=int, default=5, help="candidates to report (default 5)")
     oc.add_argument("--out-dir", default="out/occlusion", help="occlusion.json, landscape.png, best.png")
     oc.add_argument("--no-contact-map", action="store_true", help="skip the occlusal contact map of the best pose")
     oc.add_argument("--no-picture", action="store_true", help="skip the rendering of the best pose (no GL needed)")
+    oc.add_argument("--given-pose", action="store_true",
+                    help="search around the pose the files give (default: register the arches from their shapes and "
+                         "search from there, the given pose one more start)")
     oc.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     _add_pair_options(oc, tmj=True, files=True)
     oc.set_defaults(func=_cmd_occlusion)

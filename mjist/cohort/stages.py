@@ -47,7 +47,9 @@ def prepare(patient: Patient, out_dir: str, settings: dict) -> dict:
         pdir = patient_dir(out_dir, patient.id)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the notes carry what the warnings say
-            scene = pair_scene(patient.folder, pdir, "occlusion", **patient.pair_options(),
+            # registered from the arches' shapes, as ``mjist occlusion`` does: the search starts from
+            # the anatomy, not from wherever each patient's files put the mandible
+            scene = pair_scene(patient.folder, pdir, "occlusion", **{"register": True, **patient.pair_options()},
                                max_error=settings["max_error"], progress=False)
         pair = json.loads((pdir / "pair.json").read_text())
     except Exception as exc:  # a bad patient: an error row, the cohort goes on

@@ -33,7 +33,7 @@ from . import pair as jawmod
 from . import ranking
 from .exact import near_faces
 from .ranking import Candidate
-from .scenepair import JAW_TO_WORLD, UP, ScenePair, resolve
+from .scenepair import JAW_TO_WORLD, UP, ScenePair, file_transform, resolve
 from .scenes import pair_scene
 
 SCENE = jawmod.BUNDLED / "occlusion_search.xml"
@@ -42,6 +42,15 @@ SETTLED = 0.1  # mm/s: a start has settled when no tooth point moves faster (las
 FIRST_CHUNK_S = 0.3  # s of closing before the first settle check; then CHUNK_S at a time
 CHUNK_S = 0.1
 AMBIGUOUS_FLOOR_MM = 0.002  # the margin below which two basins are never told apart (point sampling noise)
+# the starts' spread around a registered pair's occlusion (``register``): twice the farthest the
+# registration has placed the shared arches from their occlusion (1.2 mm, 2.1°; BENCHMARKS.md), so the
+# starts cover that; wider spends starts on poses the teeth are far from
+REGISTERED_TRANSLATION = 3e-3
+REGISTERED_ROTATION_DEG = 5.0
+# a pose the files gave is one more start when it is within this of the registered occlusion
+# (largest tooth-point shift, mm; rotation, degrees): a pair given open or moved a little, not one
+# given in an unrelated frame
+GIVEN_REACH_MM, GIVEN_REACH_DEG = 15.0, 20.0
 
 
 def _rounds(starts: int) -> list[tuple[int, float]]:
@@ -186,7 +195,7 @@ def _polish(pair: ScenePair, bvh, P, reach_deg: float = POLISH_REACH_DEG):
     return Q, float(np.degrees(turn + apart)), jawmod.coal_distance(bvh[0], pair.maxilla_pose, bvh[1], Q)
 
 
-def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3, rotation_deg: float = 3.0,
+def search(scene=None, *, data=None, starts: int = 64, translation: float | None = None, rotation_deg: float | None = None,
            opening_deg: float = 2.0, seconds: float = 2.0, seed: int = 0, threads: int | None = None,
            top: int = 5, polish: int = 1, seat: float | None = None, progress: bool = True, cache_dir=None, out_dir=None,
            pair: dict | None = None) -> dict:
@@ -197,10 +206,13 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
     scene : path, optional
         An occlusion-search scene (default ``models/occlusion_search.xml``); or ``data``: a jaw
         pair folder whose scene is generated into ``out_dir``, read with ``pair`` options
-        (units, up, hinge, repair, tmj: ``scenes.pair_scene``).
+        (units, up, hinge, repair, tmj, register: ``scenes.pair_scene``). A pair folder is
+        registered from the arches' shapes (``register``) unless ``pair`` says ``register=False``:
+        the search starts from the anatomy, and the pose the files gave is one more start.
     starts : int
         Starting poses, sampled with ``seed`` within ``translation`` (m), ``rotation_deg`` and
-        ``opening_deg`` of the scene's ``occlusion`` keyframe.
+        ``opening_deg`` of the scene's ``occlusion`` keyframe (defaults: 2 mm and 3°, or
+        ``REGISTERED_TRANSLATION`` and ``REGISTERED_ROTATION_DEG`` around a registration).
     seconds : float
         Most simulated closing time per start; a start stops once settled (``SETTLED``).
     threads : int, optional
@@ -223,10 +235,15 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         ``arches`` (both arch frames), ``error_bound_mm`` of the IST trees used to close.
     """
     if data is not None or (pair or {}).get("maxilla"):
-        scene = pair_scene(data, out_dir or "out/occlusion", "occlusion", progress=progress, **(pair or {}))
+        scene = pair_scene(data, out_dir or "out/occlusion", "occlusion", progress=progress, **{"register": True, **(pair or {})})
     scene = Path(scene or SCENE)
     meta = scene.parent / "pair.json"  # a scene made from a user's pair: its hinge, how sure it is
     meta = json.loads(meta.read_text()) if meta.exists() else {}
+    registered = "registration" in meta
+    if translation is None:
+        translation = REGISTERED_TRANSLATION if registered else 2e-3
+    if rotation_deg is None:
+        rotation_deg = REGISTERED_ROTATION_DEG if registered else 3.0
     if seat is None:
         seat = float(meta.get("seat_uncertainty_mm") or 0.0) * 1e-3
     t0 = time.perf_counter()
@@ -235,25 +252,22 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         jp = resolve(model, handle)
         q = Query(handle.trees["maxilla"], handle.trees["mandible"])
         jp.sample = _sample(jp, jp.reference)
+        given = _given_start(jp, meta)
         setup_s = time.perf_counter() - t0
 
         nthread = int(threads or os.cpu_count() or 1)
         X, final, settle, judged = np.empty((0, 7)), [], [], []
-        sim_s = rank_s = 0.0
-        centre, picked = None, jp.reference
-        for r, (m, scale) in enumerate(_rounds(starts) if seat > 0 else [(starts, 1.0)]):
-            # each round samples the condyles' seat around the best pose so far, more narrowly
-            Xr = sample_starts(jp, m, translation=translation * scale, rotation_deg=rotation_deg, opening_deg=opening_deg,
-                               seed=(seed, r) if r else seed, centre=centre)
-            # forward or back only: the discs hold the condyles' height, the fossae their side
-            seats = np.tile(jp.hinge, (m, 1))
-            if centre is not None:
-                seats[:, 1] = condyle_seats(jp, np.r_[centre[0], centre[1]])[0, 1]
-            seats[:, 1] += np.random.default_rng((seed, r, 1)).uniform(-1.0, 1.0, m) * seat * scale
+        timing = {"sim": 0.0, "rank": 0.0}
+        picked = jp.reference
+
+        def close_round(Xr, seats):
+            """Close the starts ``Xr`` with the condyles at ``seats``, judge them, and return the
+            best start so far (the occlusal sample re-picked where it closed, when it moved)."""
+            nonlocal X, final, settle, judged, picked
             Xr = np.array([_separate(jp, q, x) for x in Xr])
             t1 = time.perf_counter()
             fr, sr = _close(jp, Xr, seconds, nthread, progress, seats)
-            sim_s += time.perf_counter() - t1
+            timing["sim"] += time.perf_counter() - t1
             t2 = time.perf_counter()
             X, final, settle = np.vstack([X, Xr]), final + fr, settle + sr
             judged += _judge_all(jp, fr)
@@ -265,8 +279,29 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
                 jp.sample = _sample(jp, picked)
                 judged = _judge_all(jp, final)
                 best = _best(judged, settle)
+            timing["rank"] += time.perf_counter() - t2
+            return best, judged
+
+        centre = None
+        for r, (m, scale) in enumerate(_rounds(starts) if seat > 0 else [(starts, 1.0)]):
+            # each round samples the condyles' seat around the best pose so far, more narrowly
+            turn = rotation_deg * max(scale, 0.25) if registered else rotation_deg  # a registration's turn narrows too
+            Xr = sample_starts(jp, m, translation=translation * scale, rotation_deg=turn, opening_deg=opening_deg,
+                               seed=(seed, r) if r else seed, centre=centre)
+            if r == 0 and given.get("start") is not None:  # the pose the files gave: one more start
+                Xr = np.vstack([Xr, given["start"]])
+            seats = np.tile(jp.hinge, (len(Xr), 1))
+            if registered:
+                # a registration places the teeth, not the condyles: each start seats them where it
+                # puts them (side and front-back; the discs hold their height)
+                seats[:, :2] = condyle_seats(jp, Xr)[:, :2]
+            else:  # forward or back only: the discs hold the condyles' height, the fossae their side
+                if centre is not None:
+                    seats[:, 1] = condyle_seats(jp, np.r_[centre[0], centre[1]])[0, 1]
+                seats[:, 1] += np.random.default_rng((seed, r, 1)).uniform(-1.0, 1.0, len(Xr)) * seat * scale
+            best, _ = close_round(Xr, seats)
             centre = jp.body(judged[best].pose)
-            rank_s += time.perf_counter() - t2
+        sim_s, rank_s = timing["sim"], timing["rank"]
         t2 = time.perf_counter()
         basins = _basins(jp, judged, settle)
         rank_s += time.perf_counter() - t2
@@ -304,11 +339,37 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float = 2e-3
         if meta:
             res["hinge_source"], res["hinge_uncertainty_mm"] = meta.get("hinge_source"), meta.get("hinge_uncertainty_mm")
         res["seat_uncertainty_mm"] = seat * 1e3
+        if registered:
+            res["registration"] = meta["registration"]
+            res["given"] = {k: v for k, v in given.items() if k not in ("start", "pose")}
+            if cands and given.get("pose") is not None:
+                res["given"]["best_from_given"] = pose_error(jp, cands[0].pos, cands[0].quat, *jp.body(given["pose"]),
+                                                             points=jp.sample.mandible_points)
+                meta["result_from_given"] = res["given"]["best_from_given"]  # pair.json says it too
+                (scene.parent / "pair.json").write_text(json.dumps(meta, indent=1))
+        if meta:
+            res["mandible_transform"] = [file_transform(meta, jp.pose(c.pos, c.quat), jp.reference).tolist() for c in cands]
         res["_model"], res["_handle"], res["_pair"] = model, handle, jp
         return res
     except Exception:
         handle.detach()
         raise
+
+
+def _given_start(jp: ScenePair, meta: dict) -> dict:
+    """Where the files put the mandible of a registered pair (``pair.json``'s ``given_from_reference``):
+    its world pose, how far it is from the registered occlusion, whether the arches were given
+    touching, and the start it makes when within ``GIVEN_REACH_MM`` / ``GIVEN_REACH_DEG`` (else None)."""
+    if "given_from_reference" not in meta or "registration" not in meta:
+        return {}
+    W = np.eye(4)
+    W[:3, :3] = JAW_TO_WORLD
+    P = W @ np.asarray(meta["given_from_reference"], float) @ W.T @ jp.reference
+    pos, quat = jp.body(P)
+    e = pose_error(jp, pos, quat, points=jp.sample.mandible_points)
+    near = e["max_mm"] <= GIVEN_REACH_MM and e["rotation_deg"] <= GIVEN_REACH_DEG
+    return {"pose": P, "from_registration": e, "touching": bool(meta["registration"].get("given_touching")),
+            "start": np.r_[pos, quat] if near else None, "is_start": bool(near)}
 
 
 def _landscape_row(jp: ScenePair, start, final: dict, j: ranking.Judgement, settle: dict) -> dict:
@@ -534,7 +595,7 @@ def write_contact_map(res: dict, out_dir) -> tuple[dict, list[str]]:
     return cmap, contactmap.write(cmap, frames, out_dir)
 
 
-def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, threads=None, seed=0, top=5,
+def main(scene=None, data=None, starts=64, translation=None, rotation_deg=None, threads=None, seed=0, top=5,
          out="out/occlusion", progress=True, pair: dict | None = None, contact_map: bool = True, picture: bool = True) -> int:
     res = search(scene, data=data, starts=starts, translation=translation, rotation_deg=rotation_deg,
                  threads=threads, seed=seed, top=top, progress=progress, out_dir=out, pair=pair)
@@ -553,6 +614,13 @@ def main(scene=None, data=None, starts=64, translation=2e-3, rotation_deg=3.0, t
             verdict = "AMBIGUOUS: #1 and #2 are within the scores' spread" if conf["ambiguous"] else "clear"
             print(f"confidence    margin to #2 {conf['margin_mm']:.4f} mm (spread {conf['uncertainty_mm']:.4f} mm; basins of "
                   f"{conf['basin_starts'][0]} and {conf['basin_starts'][1]} starts): {verdict}")
+        if "registration" in res:
+            g, reg = res["given"], res["registration"]
+            moved = g.get("best_from_given")
+            print(f"registered    from the arches' shapes in {reg['seconds']:.1f} s (docking {reg['score_mm']:.3f} mm); the files "
+                  f"gave the mandible {'touching' if g['touching'] else 'apart'}, {g['from_registration']['max_mm']:.1f} mm / "
+                  f"{g['from_registration']['rotation_deg']:.1f}° from it ({'one more start' if g['is_start'] else 'too far to start from'})"
+                  + (f"; the best lies {moved['max_mm']:.2f} mm / {moved['rotation_deg']:.2f}° from the given pose" if moved else ""))
         written = write_outputs(res, out, picture=picture)
         if contact_map and res["candidates"]:
             cmap, files = write_contact_map(res, out)

@@ -62,7 +62,7 @@ class Orientation:
                 "scales": list(self.scales), "rotation": self.R.tolist(), "detected": self.detected}
 
 
-def _unit_of(extent: float) -> str | None:
+def unit_of(extent: float) -> str | None:
     for name, (lo, hi) in UNIT_RANGES.items():
         if lo <= extent <= hi:
             return name
@@ -94,7 +94,7 @@ def detect_units(maxilla_V, mandible_V, units="auto") -> tuple[str, dict]:
         if u != "auto":
             found[name] = u
             continue
-        found[name] = _unit_of(e)
+        found[name] = unit_of(e)
         if found[name] is None:
             raise ValueError(
                 f"cannot tell the units of the {name}: its largest extent is {e:g} in file units, which is neither "
@@ -239,30 +239,6 @@ def _vertex_bracket(bvh_maxilla, bvh_mandible, u, meshes, a: float, b: float, to
         a = t - step
         step *= 16.0
     return a, b, whole
-
-
-def hinge_touch(bvh_maxilla, bvh_mandible, hinge, reach_deg: float = 25.0, tol_deg: float = 1e-4) -> float:
-    """Turn (rad, negative closes) about the jaw frame's x axis through ``hinge`` at which a mandible
-    held apart at its file pose first touches the maxilla (coal). Raises ``ValueError`` when it
-    touches already or not within ``reach_deg``."""
-    from .exact import coal_collides
-    from .pair import hinge_pose
-
-    def hit(deg):
-        return coal_collides(bvh_maxilla, np.eye(4), bvh_mandible, hinge_pose(np.radians(deg), hinge))
-
-    if hit(0.0):
-        raise ValueError("the jaws already touch at the stored pose: nothing to close")
-    apart, touching = 0.0, -reach_deg
-    if not hit(touching):
-        raise ValueError(f"the mandible does not reach the maxilla closing {reach_deg:g}° about its condyles")
-    while apart - touching > tol_deg:
-        mid = 0.5 * (apart + touching)
-        if hit(mid):
-            touching = mid
-        else:
-            apart = mid
-    return float(np.radians(apart))
 
 
 def frame_matrix(up: str, anterior) -> np.ndarray:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import BUNDLED
+from . import BUNDLED, arch, orient
 from .exact import coal_bvh, coal_collides, coal_distance, coal_transform  # noqa: F401  (the pair's exact reference)
 
 UP, ANTERIOR = 1, 2
@@ -59,12 +59,31 @@ def hinge_pose(theta, hinge, lateral=0.0, protrusion=0.0, vertical=0.0) -> np.nd
     return P
 
 
+def hinge_touch(bvh_maxilla, bvh_mandible, hinge, reach_deg: float = 25.0, tol_deg: float = 1e-4) -> float:
+    """Turn (rad, negative closes) about the jaw frame's x axis through ``hinge`` at which a mandible
+    held apart at its file pose first touches the maxilla (coal). Raises ``ValueError`` when it
+    touches already or not within ``reach_deg``."""
+    def hit(deg):
+        return coal_collides(bvh_maxilla, np.eye(4), bvh_mandible, hinge_pose(np.radians(deg), hinge))
+
+    if hit(0.0):
+        raise ValueError("the jaws already touch at the stored pose: nothing to close")
+    apart, touching = 0.0, -reach_deg
+    if not hit(touching):
+        raise ValueError(f"the mandible does not reach the maxilla closing {reach_deg:g}° about its condyles")
+    while apart - touching > tol_deg:
+        mid = 0.5 * (apart + touching)
+        if hit(mid):
+            touching = mid
+        else:
+            apart = mid
+    return float(np.radians(apart))
+
+
 def touching_offset(bvh_maxilla, bvh_mandible, max_open=0.01, tol=1e-6) -> float:
     """Vertical mandible offset (m) at which the two meshes just touch, on the separated side:
     ``orient.touch_offset`` along the jaw frame's +y, within ``±max_open`` of the stored pose."""
-    from .orient import touch_offset
-
-    return touch_offset(bvh_maxilla, bvh_mandible, np.eye(3)[UP], reach=max_open, tol=tol)
+    return orient.touch_offset(bvh_maxilla, bvh_mandible, np.eye(3)[UP], reach=max_open, tol=tol)
 
 
 def chewing_motion(n, hinge, *, contact_offset=0.0, open_deg=8.0, excursion=0.003, protrusion=0.003,
@@ -151,7 +170,6 @@ def _load(path, name: str, repair: str, unit: str = "auto", max_deviation_mm: fl
     ``unit`` (detected from its size when "auto")."""
     from ..errors import MeshError
     from ..geometry.mesh import load_mesh, read_surface
-    from .orient import UNITS, _unit_of
 
     if repair not in ("auto", "on", "off", True, False):
         raise ValueError(f"repair={repair!r}: use auto (close open scans), on or off")
@@ -162,8 +180,8 @@ def _load(path, name: str, repair: str, unit: str = "auto", max_deviation_mm: fl
             raise MeshError(f"{name} ({path}): {exc}") from exc
     tm = read_surface(path)
     if unit == "auto":
-        unit = _unit_of(float(np.ptp(tm.vertices, axis=0).max())) or "mm"
-    limit = (MAX_DEVIATION_MM if max_deviation_mm is None else float(max_deviation_mm)) * 1e-3 / UNITS[unit]
+        unit = orient.unit_of(float(np.ptp(tm.vertices, axis=0).max())) or "mm"
+    limit = (MAX_DEVIATION_MM if max_deviation_mm is None else float(max_deviation_mm)) * 1e-3 / orient.UNITS[unit]
     try:
         return load_mesh(tm, repair=True, max_deviation=limit)
     except MeshError as exc:
@@ -204,7 +222,6 @@ def _in_jaw_frame(mesh, o, jaw: str):
 
 def _orientation(mx, md, units, up, notes: list):
     """Units, up and anterior of the pair (``orient``, ``arch``) and the touching offset along up."""
-    from . import arch, orient
 
     unit, ev_u = orient.detect_units(mx.vertices, md.vertices, units)
     sx, sd = orient.scales(unit)
@@ -237,7 +254,6 @@ def _closed_about_condyles(mx, md, pose, notes: list, info: dict) -> np.ndarray:
     """The occlusion of a pair whose first contact moving the mandible up is not at the teeth (the
     condyles meet their fossae first: a pair given open): the mandible turned closed about its
     condyles from its stored pose to coal's first touch. Other pairs keep ``pose``."""
-    from . import arch, orient
 
     Vd = md.vertices @ pose[:3, :3].T + pose[:3, 3]
     up_j = np.array([0.0, 1.0, 0.0])
@@ -248,7 +264,7 @@ def _closed_about_condyles(mx, md, pose, notes: list, info: dict) -> np.ndarray:
         raise ValueError("the jaws meet outside the teeth when the mandible moves up and the mandible has no condyles "
                          "to close it about: place the arches in occlusion (or pass --hinge)")
     h = hinge_point(md.vertices)
-    turn = orient.hinge_touch(coal_bvh(mx.vertices, mx.faces), coal_bvh(md.vertices, md.faces), h)
+    turn = hinge_touch(coal_bvh(mx.vertices, mx.faces), coal_bvh(md.vertices, md.faces), h)
     notes.append(f"the jaws first meet outside the teeth moving the mandible up: closed {-np.degrees(turn):.2f}° about "
                  "its condyles to where the teeth first touch (coal)")
     info["source"] = "coal first touch closing about the condyles"
@@ -256,8 +272,39 @@ def _closed_about_condyles(mx, md, pose, notes: list, info: dict) -> np.ndarray:
     return hinge_pose(turn, h)
 
 
+GIVEN_TOUCHING = 5e-5  # m: arches given within this of each other (coal) are "given touching"
+GIVEN_OVERLAP = 1e-3  # m: ... unless they still overlap with the mandible this much further down (given through each other)
+
+
+def _registered(raw: dict, units, notes: list) -> tuple[dict, dict]:
+    """The mandible moved onto the maxilla by ``register.register`` from the arches' shapes alone
+    (its file's own pose ignored), and what that did: the registration's figures, the transform
+    (metres, maxilla file axes) and whether the arches were given touching."""
+    import dataclasses
+
+    from .register import register
+
+    unit, _ = orient.detect_units(raw["maxilla"].vertices, raw["mandible"].vertices, units)
+    sx, sd = orient.scales(unit)
+    mx, md = raw["maxilla"], raw["mandible"]
+    reg = register((mx.vertices * sx, mx.faces), (md.vertices * sd, md.faces))
+    T = reg.transform
+    # given touching: within GIVEN_TOUCHING of each other, and apart once the mandible drops by
+    # GIVEN_OVERLAP (two arches given through each other, in unrelated frames, are not touching)
+    bx, bd = coal_bvh(mx.vertices * sx, mx.faces), coal_bvh(md.vertices * sd, md.faces)
+    drop = np.eye(4)
+    drop[:3, 3] = GIVEN_OVERLAP * reg.maxilla.teeth
+    touching = (coal_distance(bx, np.eye(4), bd, np.eye(4)) <= GIVEN_TOUCHING
+                and not coal_collides(bx, np.eye(4), bd, drop))
+    moved = dataclasses.replace(md, vertices=np.ascontiguousarray((md.vertices * sd @ T[:3, :3].T + T[:3, 3]) / sd))
+    notes.append(f"registered the arches from their shapes in {reg.seconds:.1f} s (docking score {reg.score_mm:.3f} mm"
+                 + (f", runner-up {reg.runner_up_mm:.3f} mm at {reg.runner_up_shift_mm:.1f} mm" if reg.runner_up_mm else "")
+                 + "); the arches were given " + ("touching: that pose is kept as a start" if touching else "apart"))
+    return {**raw, "mandible": moved}, {**reg.as_dict(), "given_touching": bool(touching)}
+
+
 def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None, repair="auto",
-              max_deviation_mm=None):
+              max_deviation_mm=None, register: bool = False):
     """A jaw pair in the jaw frame (metres, +y up, +z anterior) and its occlusion.
 
     Parameters
@@ -277,6 +324,12 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
         and warns; "on" also fixes winding, inversion and degenerate faces; "off" refuses them.
     max_deviation_mm : float, optional
         The farthest closing may move a scan's vertex (default ``MAX_DEVIATION_MM``).
+    register : bool
+        Ignore the mandible's given pose: place it against the maxilla from the arches' own
+        shapes (``register.register``; arches scanned separately, in unrelated frames, given
+        open or apart). The returned mandible is the registered one; ``info["registration"]``
+        holds how, and ``info["given"]`` (4x4, jaw frame) maps the registered mandible back to
+        where the files put it.
 
     Returns
     -------
@@ -300,14 +353,15 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
     """
     import json
 
-    from . import arch
 
     paths = _find(folder, maxilla, mandible)
     notes: list[str] = []
-    from .orient import parse_units
 
-    given = dict(zip(("maxilla", "mandible"), parse_units(units)))
+    given = dict(zip(("maxilla", "mandible"), orient.parse_units(units)))
     raw = {name: _load(p, name, repair, given[name], max_deviation_mm) for name, p in paths.items()}
+    registration = None
+    if register:
+        raw, registration = _registered(raw, units, notes)
     o, touch = _orientation(raw["maxilla"], raw["mandible"], units, up, notes)
     _closure_notes(raw, o, notes)
     mx, md = _in_jaw_frame(raw["maxilla"], o, "maxilla"), _in_jaw_frame(raw["mandible"], o, "mandible")
@@ -315,7 +369,7 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
     P[UP, 3] = touch
     info = {"mandible_pose": P, "source": "coal first touch", "seat_uncertainty": 0.0}
     meta = paths["maxilla"].parent / "occlusion.json"
-    if maxilla is None:  # a pair folder may carry its designed occlusion
+    if maxilla is None and not register:  # a pair folder may carry its designed occlusion
         if meta.exists():
             j = json.loads(meta.read_text())
             S = np.eye(4)
@@ -357,8 +411,15 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
         info["inertial"] = inertial
         notes.append(f"teeth-only mandible: hinge from {info['hinge_source']}, mass and inertia of a whole "
                      f"mandible ({arch.MANDIBLE_MASS * 1e3:.0f} g)")
+    if registration is not None:
+        # the registered mandible (jaw frame) back to where its file put it: G⁻¹ with G = R T R⁻¹
+        R4 = np.eye(4)
+        R4[:3, :3] = o.R
+        G = R4 @ np.asarray(registration["transform"]) @ R4.T
+        info["registration"], info["given"] = registration, np.linalg.inv(G)
+        info["seat_uncertainty"] = arch.SEAT_UNCERTAINTY  # the condyles' seat comes from the registration, not the files
     info.update(orientation=o, arches=frames, teeth_only=teeth_only, notes=notes,
                 paths={k: str(v) for k, v in paths.items()},
-                export=not o.identity or any(m.closure is not None or m.repairs for m in raw.values())
+                export=registration is not None or not o.identity or any(m.closure is not None or m.repairs for m in raw.values())
                 or any(p.suffix.lower() == ".stl" and len(m.faces) > MUJOCO_STL_FACES for p, m in zip(paths.values(), raw.values())))
     return mx, md, info

@@ -23,6 +23,25 @@ JAW_TO_WORLD = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # jaw frame (
 HINGE_AXIS = np.array([1.0, 0.0, 0.0])  # world; a positive turn about it opens the mandible
 
 
+def file_maps(meta: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """``A_x`` (maxilla file -> world) and ``A_d`` (mandible file -> world at the reference
+    occlusion) from a scene's ``pair.json``, and the maxilla file's metres per unit."""
+    o = meta["orientation"]
+    R = np.asarray(o["rotation"], float)
+    sx, sd = (float(s) for s in o["scales"])
+    Sx, Sd, W = np.eye(4), np.eye(4), np.eye(4)
+    Sx[:3, :3], Sd[:3, :3], W[:3, :3] = sx * R, sd * R, JAW_TO_WORLD
+    return W @ Sx, W @ np.asarray(meta["mandible_pose"], float) @ Sd, sx
+
+
+def file_transform(meta: dict, pose, reference) -> np.ndarray:
+    """The mandible file's pose in the maxilla file's frame and units (4x4) when the mandible geom
+    stands at the world pose ``pose`` instead of its ``reference`` (``pair.json`` as ``meta``)."""
+    A_x, A_d, sx = file_maps(meta)
+    M = np.linalg.inv(A_x) @ np.asarray(pose, float) @ np.linalg.inv(np.asarray(reference, float)) @ A_d
+    return M
+
+
 @dataclass
 class ScenePair:
     """The jaw pair of an occlusion scene: meshes (geom frames), poses (world 4x4), frames, hinge."""

@@ -308,7 +308,8 @@ KINDS = {"closure": "jaw_closure.xml", "occlusion": "occlusion_search.xml", "hap
 
 
 def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None,
-               repair="auto", max_deviation_mm=None, tmj: bool = True, output=None, progress: bool = True, **kwargs):
+               repair="auto", max_deviation_mm=None, tmj: bool = True, output=None, progress: bool = True,
+               register: bool = False, **kwargs):
     """Write the ``kind`` scene ("closure", "occlusion" or "haptic") of a user's jaw pair; return its path.
 
     The pair (``folder``, or ``maxilla`` + ``mandible`` files) is read by ``pair.load_pair`` with
@@ -318,7 +319,9 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
     ``tmj`` keeps the occlusion search's soft TMJ ball joint at the hinge (also at Bonwill's
     estimate: the joint yields, and without it the closing force behind the arch tips a free
     teeth-only mandible over its molars). ``pair.json`` beside the scene records what
-    was detected. ``max_error`` is 0.3 mm unless given; other ``kwargs`` go to the scene writer.
+    was detected. ``register`` places the mandible from the arches' shapes, ignoring its given
+    pose (``pair.load_pair``); ``pair.json`` then records how, and where the files put it
+    (``given_from_reference``). ``max_error`` is 0.3 mm unless given; other ``kwargs`` go to the scene writer.
     """
     import json
     import os
@@ -330,7 +333,9 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
         raise ValueError(f"scene kind {kind!r} must be one of {', '.join(KINDS)}")
     writers = {"closure": jaw_closure_xml, "occlusion": occlusion_search_xml, "haptic": haptic_jaw_xml}
     mx, md, info = load_pair(folder, maxilla=maxilla, mandible=mandible, units=units, up=up, hinge=hinge, repair=repair,
-                             max_deviation_mm=max_deviation_mm)
+                             max_deviation_mm=max_deviation_mm, register=register)
+    occlusion = np.asarray(info["mandible_pose"], float)  # the (registered) mandible mesh -> its occlusion, jaw frame
+    given = np.asarray(info.get("given", np.eye(4)), float)  # the mandible mesh -> where its file put it
     path = Path(output) if output else Path(out_dir) / KINDS[kind]
     os.makedirs(path.parent, exist_ok=True)
     files = {k: os.path.abspath(v) for k, v in info["paths"].items()}
@@ -386,9 +391,12 @@ def pair_scene(folder, out_dir, kind: str, *, maxilla=None, mandible=None, units
                "hinge_source": info["hinge_source"], "hinge_uncertainty_mm": info["hinge_uncertainty"] * 1e3,
                "occlusion_source": info["source"], "seat_uncertainty_mm": info["seat_uncertainty"] * 1e3,
                "teeth_only": info["teeth_only"],
-               "mandible_pose": np.asarray(info["mandible_pose"]).tolist(),
+               "mandible_pose": (occlusion @ np.linalg.inv(given)).tolist(),  # the mandible file -> its occlusion
+               "given_from_reference": (given @ np.linalg.inv(occlusion)).tolist(),
                "orientation": info["orientation"].as_dict(), "arches": {k: f.as_dict() for k, f in info["arches"].items()},
                "notes": info["notes"]}
+    if "registration" in info:
+        summary["registration"] = info["registration"]
     (path.parent / "pair.json").write_text(json.dumps(summary, indent=1))
     if progress:
         for n in info["notes"]:

@@ -24,21 +24,8 @@ import numpy as np
 
 from . import wafer as shape_mod
 from . import waferproof
+from .scenepair import file_maps
 from .wafer import apply_pose
-
-J4 = np.eye(4)
-J4[:3, :3] = [[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]  # jaw frame -> the scenes' world (scenepair.JAW_TO_WORLD)
-
-
-def _file_maps(meta: dict) -> tuple[np.ndarray, np.ndarray, float]:
-    """``A_x`` (maxilla file -> world) and ``A_d`` (mandible file -> world at the reference
-    occlusion) from a scene's ``pair.json``, and the maxilla file's metres per unit."""
-    o = meta["orientation"]
-    R = np.asarray(o["rotation"], float)
-    sx, sd = (float(s) for s in o["scales"])
-    Sx, Sd = np.eye(4), np.eye(4)
-    Sx[:3, :3], Sd[:3, :3] = sx * R, sd * R
-    return J4 @ Sx, J4 @ np.asarray(meta["mandible_pose"], float) @ Sd, sx
 
 
 def _candidate_pose(jp, pose_file) -> tuple[np.ndarray, str]:
@@ -144,7 +131,7 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
                         thickness=thickness_mm * 1e-3, opening_deg=opening_deg)
     timings["shape_s"] = time.perf_counter() - t2
     X = w.mandible_pose @ Pc @ np.linalg.inv(jp.reference)  # world: reference occlusion -> seated on the wafer
-    A_x, A_d, sx = _file_maps(meta)
+    A_x, A_d, sx = file_maps(meta)
     to_file = np.linalg.inv(A_x)
     M = to_file @ X @ A_d
     V_file = apply_pose(to_file, w.vertices)
