@@ -39,6 +39,7 @@ STAGES = {
     "haptic": ("bench_haptic.py", ["--quick"], [], "prefix"),
     "occlusion": ("bench_occlusion.py", ["--starts", "32"], [], "prefix"),
     "real_occlusion": ("bench_real_occlusion.py", ["--seeds", "1", "--variants", "stored,bundled"], [], "prefix"),
+    "any_start": ("bench_any_start.py", ["--pairs", "orthocast", "--starts", "stored,apart", "--seeds", "1"], [], "prefix"),
     "cohort": ("bench_cohort.py", ["--patients", "2", "--spacing", "1.0", "--starts", "16", "--max-error", "0.001"], [], "prefix"),
     "wafer": ("bench_wafer.py", ["--variants", "bundled"], [], "dir"),
     "stress": ("bench_stress.py", ["--quick"], [], "dir"),
@@ -76,6 +77,11 @@ NOTES = {
                        "bundled pair, one search per seed: the best candidate's largest tooth-point shift and rotation "
                        "from the stored occlusion, the rank of the right basin, the rank correlation of score and "
                        "error over the settled starts, how often the search called itself ambiguous, its time."),
+    "any_start": ("Any start: automated articulation", "`mjist occlusion --data` with default settings on the "
+                  "shared casts and CBCT pair handed over as stored, open, apart and in an unrelated frame: the best "
+                  "candidate's largest occlusal-point shift and rotation from the stored occlusion at first touch "
+                  "(measured on the mandible file's reported transform), the spread between starts, the ambiguity "
+                  "flag and the time."),
     "cohort": ("Cohorts", "A synthetic cohort (known occlusions) run by `mjist cohort` on local Ray with 1 and 2 "
                "workers, each run from an empty tree cache: patients per minute, the median time per stage, whether "
                "cohort.csv agrees across worker counts, each search's distance from its patient's design, and the "

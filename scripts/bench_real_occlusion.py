@@ -14,7 +14,8 @@ The shared CBCT pair (``../shared/data/jaw``, stored in occlusion) three ways, a
   ``open``): where the teeth alone put the occlusion;
 
 plus the bundled pair (its designed occlusion). Every search runs with default settings
-(``occlusion.search(data=FOLDER, seed=s)``), one per seed. The reference is the stored
+(``occlusion.search(data=FOLDER, seed=s)`` around the pose the files give, ``--given-pose``; the
+registration from the arches' shapes is ``scripts/bench_any_start.py``'s), one per seed. The reference is the stored
 occlusion (for the shared pair: the stored mandible moved along up to coal's first touch; for
 ``open``, the same pose of the un-opened mandible). Per search: the best candidate's error
 (largest tooth-point shift, rotation), the rank of the first candidate within 0.3 mm / 0.5°,
@@ -100,7 +101,9 @@ def run_one(folder, D, seed: int, out: Path, **kw) -> dict:
     if isinstance(D, Exception):
         raise D
     t = time.perf_counter()
-    res = occlusion.search(data=None if folder is None else folder, seed=seed, progress=False, out_dir=out, **kw)
+    # around the pose the files give (--given-pose): scripts/bench_any_start.py measures the registration
+    pair = None if folder is None else {"register": False}
+    res = occlusion.search(data=None if folder is None else folder, seed=seed, progress=False, out_dir=out, pair=pair, **kw)
     wall = time.perf_counter() - t
     try:
         jp = res["_pair"]

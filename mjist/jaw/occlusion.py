@@ -42,9 +42,9 @@ SETTLED = 0.1  # mm/s: a start has settled when no tooth point moves faster (las
 FIRST_CHUNK_S = 0.3  # s of closing before the first settle check; then CHUNK_S at a time
 CHUNK_S = 0.1
 AMBIGUOUS_FLOOR_MM = 0.002  # the margin below which two basins are never told apart (point sampling noise)
-# the starts' spread around a registered pair's occlusion (``register``): twice the farthest the
-# registration has placed the shared arches from their occlusion (1.2 mm, 2.1°; BENCHMARKS.md), so the
-# starts cover that; wider spends starts on poses the teeth are far from
+# the starts' spread around a registered pair's occlusion (``register``): the registration has placed
+# the shared arches up to 2.0 mm / 2.7° from their occlusion (tests/jaw/test_register.py), which the
+# starts must cover; wider spends starts on poses the teeth are far from
 REGISTERED_TRANSLATION = 3e-3
 REGISTERED_ROTATION_DEG = 5.0
 # a pose the files gave is one more start when it is within this of the registered occlusion
@@ -239,7 +239,7 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float | None
     scene = Path(scene or SCENE)
     meta = scene.parent / "pair.json"  # a scene made from a user's pair: its hinge, how sure it is
     meta = json.loads(meta.read_text()) if meta.exists() else {}
-    registered = "registration" in meta
+    registered = bool(meta.get("registration", {}).get("used"))
     if translation is None:
         translation = REGISTERED_TRANSLATION if registered else 2e-3
     if rotation_deg is None:
@@ -339,8 +339,9 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float | None
         if meta:
             res["hinge_source"], res["hinge_uncertainty_mm"] = meta.get("hinge_source"), meta.get("hinge_uncertainty_mm")
         res["seat_uncertainty_mm"] = seat * 1e3
-        if registered:
+        if "registration" in meta:
             res["registration"] = meta["registration"]
+        if registered:
             res["given"] = {k: v for k, v in given.items() if k not in ("start", "pose")}
             if cands and given.get("pose") is not None:
                 res["given"]["best_from_given"] = pose_error(jp, cands[0].pos, cands[0].quat, *jp.body(given["pose"]),
@@ -360,7 +361,7 @@ def _given_start(jp: ScenePair, meta: dict) -> dict:
     """Where the files put the mandible of a registered pair (``pair.json``'s ``given_from_reference``):
     its world pose, how far it is from the registered occlusion, whether the arches were given
     touching, and the start it makes when within ``GIVEN_REACH_MM`` / ``GIVEN_REACH_DEG`` (else None)."""
-    if "given_from_reference" not in meta or "registration" not in meta:
+    if "given_from_reference" not in meta or not meta.get("registration", {}).get("used"):
         return {}
     W = np.eye(4)
     W[:3, :3] = JAW_TO_WORLD
@@ -614,13 +615,16 @@ def main(scene=None, data=None, starts=64, translation=None, rotation_deg=None, 
             verdict = "AMBIGUOUS: #1 and #2 are within the scores' spread" if conf["ambiguous"] else "clear"
             print(f"confidence    margin to #2 {conf['margin_mm']:.4f} mm (spread {conf['uncertainty_mm']:.4f} mm; basins of "
                   f"{conf['basin_starts'][0]} and {conf['basin_starts'][1]} starts): {verdict}")
-        if "registration" in res:
+        if "registration" in res and "given" in res:
             g, reg = res["given"], res["registration"]
             moved = g.get("best_from_given")
             print(f"registered    from the arches' shapes in {reg['seconds']:.1f} s (docking {reg['score_mm']:.3f} mm); the files "
-                  f"gave the mandible {'touching' if g['touching'] else 'apart'}, {g['from_registration']['max_mm']:.1f} mm / "
+                  f"gave the mandible apart, {g['from_registration']['max_mm']:.1f} mm / "
                   f"{g['from_registration']['rotation_deg']:.1f}° from it ({'one more start' if g['is_start'] else 'too far to start from'})"
                   + (f"; the best lies {moved['max_mm']:.2f} mm / {moved['rotation_deg']:.2f}° from the given pose" if moved else ""))
+        elif "registration" in res:
+            print(f"registered    from the arches' shapes: {res['registration']['from_given_mm']:.2f} mm from the given pose; the "
+                  "arches were given touching, so the search started from that pose")
         written = write_outputs(res, out, picture=picture)
         if contact_map and res["candidates"]:
             cmap, files = write_contact_map(res, out)

@@ -273,6 +273,9 @@ def _closed_about_condyles(mx, md, pose, notes: list, info: dict) -> np.ndarray:
 
 
 GIVEN_TOUCHING = 5e-5  # m: arches given within this of each other (coal) are "given touching"
+SEPARATE_STEP, SEPARATE_REACH = 5e-4, 0.03  # m: how a registered mandible that overlaps elsewhere is dropped
+GIVEN_NEAR_MM = 3.0  # ... and the registration within this of it: the files' pose is an occlusion, searched around
+REGISTERED_UP_DEG = 35.0  # a registration's occlusal direction within this of a file axis makes that axis up
 GIVEN_OVERLAP = 1e-3  # m: ... unless they still overlap with the mandible this much further down (given through each other)
 
 
@@ -296,11 +299,35 @@ def _registered(raw: dict, units, notes: list) -> tuple[dict, dict]:
     drop[:3, 3] = GIVEN_OVERLAP * reg.maxilla.teeth
     touching = (coal_distance(bx, np.eye(4), bd, np.eye(4)) <= GIVEN_TOUCHING
                 and not coal_collides(bx, np.eye(4), bd, drop))
+    # the docking touched the occlusal surfaces; elsewhere (condyles in their fossae, a coronoid) a
+    # registration a few degrees off can overlap: drop the mandible until the whole arches are apart
+    down = np.eye(4)
+    for _ in range(int(SEPARATE_REACH / SEPARATE_STEP)):
+        if not coal_collides(bx, np.eye(4), bd, down @ T):
+            break
+        down[:3, 3] += SEPARATE_STEP * reg.maxilla.teeth
+    T = down @ T
+    # how far the registration puts the mandible's arch from where the files have it
+    Vm = md.vertices * sd
+    arch_pts = Vm[Vm @ reg.mandible.anterior > reg.mandible.origin @ reg.mandible.anterior - 0.06]
+    apart_mm = float(np.linalg.norm(arch_pts @ (T[:3, :3] - np.eye(3)).T + T[:3, 3], axis=1).max() * 1e3)
+    # given in occlusion: touching where the teeth fit (the registration lands near the given pose;
+    # a pair given apart can still touch elsewhere, a condyle against its fossa)
+    in_occlusion = bool(touching and apart_mm <= GIVEN_NEAR_MM)
+    out = {**reg.as_dict(), "transform": T.tolist(), "given_touching": bool(touching), "used": not in_occlusion,
+           "dropped_mm": float(down[:3, 3] @ reg.maxilla.teeth * 1e3), "from_given_mm": apart_mm}
+    head = (f"registered the arches from their shapes in {reg.seconds:.1f} s (docking score {reg.score_mm:.3f} mm"
+            + (f", runner-up {reg.runner_up_mm:.3f} mm at {reg.runner_up_shift_mm:.1f} mm" if reg.runner_up_mm else "")
+            + f"), {apart_mm:.1f} mm from where the files put the mandible")
+    if in_occlusion:
+        # a pair given in occlusion: its pose (and the condyles' seat with it) is better evidence than
+        # the teeth alone, which leave a teeth-only jaw's seat open by a millimetre (BENCHMARKS.md)
+        notes.append(head + "; the arches were given in occlusion (touching there): the search starts from that pose")
+        return raw, out
+    notes.append(head + "; the arches were given " + ("touching elsewhere" if touching else "apart")
+                 + ": the search starts from the registration")
     moved = dataclasses.replace(md, vertices=np.ascontiguousarray((md.vertices * sd @ T[:3, :3].T + T[:3, 3]) / sd))
-    notes.append(f"registered the arches from their shapes in {reg.seconds:.1f} s (docking score {reg.score_mm:.3f} mm"
-                 + (f", runner-up {reg.runner_up_mm:.3f} mm at {reg.runner_up_shift_mm:.1f} mm" if reg.runner_up_mm else "")
-                 + "); the arches were given " + ("touching: that pose is kept as a start" if touching else "apart"))
-    return {**raw, "mandible": moved}, {**reg.as_dict(), "given_touching": bool(touching)}
+    return {**raw, "mandible": moved}, out
 
 
 def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="auto", hinge=None, repair="auto",
@@ -325,11 +352,11 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
     max_deviation_mm : float, optional
         The farthest closing may move a scan's vertex (default ``MAX_DEVIATION_MM``).
     register : bool
-        Ignore the mandible's given pose: place it against the maxilla from the arches' own
-        shapes (``register.register``; arches scanned separately, in unrelated frames, given
-        open or apart). The returned mandible is the registered one; ``info["registration"]``
-        holds how, and ``info["given"]`` (4x4, jaw frame) maps the registered mandible back to
-        where the files put it.
+        Place the mandible against the maxilla from the arches' own shapes
+        (``register.register``) unless the files give the arches touching: arches scanned
+        separately, in unrelated frames, given open or apart. The returned mandible is then the
+        registered one, and ``info["given"]`` (4x4, jaw frame) maps it back to where the files
+        put it; ``info["registration"]`` holds how (``used``: whether it placed the mandible).
 
     Returns
     -------
@@ -359,10 +386,17 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
 
     given = dict(zip(("maxilla", "mandible"), orient.parse_units(units)))
     raw = {name: _load(p, name, repair, given[name], max_deviation_mm) for name, p in paths.items()}
-    registration = None
+    registration, up_used = None, up
     if register:
         raw, registration = _registered(raw, units, notes)
-    o, touch = _orientation(raw["maxilla"], raw["mandible"], units, up, notes)
+        if registration["used"] and up == "auto":
+            # the maxilla keeps its file's frame: its up is the file axis nearest the registration's
+            # (coal's probe, which reads it from how the pair opens, can be unclear at a registered pose)
+            w = -np.asarray(registration["maxilla"]["teeth"])
+            k = max(orient.AXES, key=lambda a: float(np.dot(orient.AXES[a], w)))
+            if float(np.dot(orient.AXES[k], w)) > np.cos(np.radians(REGISTERED_UP_DEG)):
+                up_used = k
+    o, touch = _orientation(raw["maxilla"], raw["mandible"], units, up_used, notes)
     _closure_notes(raw, o, notes)
     mx, md = _in_jaw_frame(raw["maxilla"], o, "maxilla"), _in_jaw_frame(raw["mandible"], o, "mandible")
     P = np.eye(4)
@@ -411,15 +445,17 @@ def load_pair(folder=None, *, maxilla=None, mandible=None, units="auto", up="aut
         info["inertial"] = inertial
         notes.append(f"teeth-only mandible: hinge from {info['hinge_source']}, mass and inertia of a whole "
                      f"mandible ({arch.MANDIBLE_MASS * 1e3:.0f} g)")
-    if registration is not None:
+    if registration is not None and registration["used"]:
         # the registered mandible (jaw frame) back to where its file put it: G⁻¹ with G = R T R⁻¹
         R4 = np.eye(4)
         R4[:3, :3] = o.R
         G = R4 @ np.asarray(registration["transform"]) @ R4.T
         info["registration"], info["given"] = registration, np.linalg.inv(G)
         info["seat_uncertainty"] = arch.SEAT_UNCERTAINTY  # the condyles' seat comes from the registration, not the files
+    elif registration is not None:
+        info["registration"] = registration  # given touching: reported beside the given pose, not used
     info.update(orientation=o, arches=frames, teeth_only=teeth_only, notes=notes,
                 paths={k: str(v) for k, v in paths.items()},
-                export=registration is not None or not o.identity or any(m.closure is not None or m.repairs for m in raw.values())
+                export=bool(registration and registration["used"]) or not o.identity or any(m.closure is not None or m.repairs for m in raw.values())
                 or any(p.suffix.lower() == ".stl" and len(m.faces) > MUJOCO_STL_FACES for p, m in zip(paths.values(), raw.values())))
     return mx, md, info

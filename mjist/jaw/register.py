@@ -114,6 +114,12 @@ class Registration:
                 "mandible": self.mandible.as_dict(), "seconds": self.seconds}
 
 
+def _scatter(X) -> np.ndarray:
+    """``Xᵀ X`` summed in a fixed order (einsum, not BLAS, whose sums depend on its thread count):
+    the same arch gives the same frame with 1 thread or 8, in a Ray worker or not."""
+    return np.einsum("ij,ik->jk", X, X)
+
+
 def _even(n_total: int, n: int) -> np.ndarray:
     return np.linspace(0, n_total - 1, min(n, n_total)).astype(np.int64)
 
@@ -124,15 +130,16 @@ def _normals(V, F) -> np.ndarray:
     return np.asarray(trimesh.Trimesh(V, F, process=False).vertex_normals)
 
 
-def mirror_plane(V) -> tuple[np.ndarray, float, float]:
+def mirror_plane(V, start=None) -> tuple[np.ndarray, float, float]:
     """The plane an arch ``V (n, 3)`` is most symmetric about: ``(normal, offset, median mismatch)``
-    with ``normal · x = offset`` on the plane (the normal's sign is arbitrary)."""
+    with ``normal · x = offset`` on the plane (the normal's sign is arbitrary); ``start``
+    (normal, offset) is matched from alone when given."""
     from scipy.spatial import cKDTree
 
     P = np.asarray(V, float)[_even(len(V), MIRROR_POINTS)]
     tree = cKDTree(P)
     c = P.mean(axis=0)
-    _, vecs = np.linalg.eigh(np.cov((P - c).T))
+    _, vecs = np.linalg.eigh(_scatter(P - c))
     best = (np.inf, None, 0.0)
     # starts: the principal axes, their pairwise diagonals and the body diagonals, in the principal
     # frame (a set unchanged by the axes' sign flips, so the fit moves with the arch); an arch in
@@ -140,17 +147,19 @@ def mirror_plane(V) -> tuple[np.ndarray, float, float]:
     dirs = [np.array(v, float) for v in np.ndindex(3, 3, 3)]
     dirs = [v - 1.0 for v in dirs]
     dirs = [v / np.linalg.norm(v) for v in dirs if v.any() and v[np.flatnonzero(v)[0]] > 0]
-    for v in dirs:
-        n = vecs @ v
-        d = float(c @ n)
+    starts = [(vecs @ v, float(c @ (vecs @ v))) for v in dirs] if start is None else [start]
+    for n, d in starts:
+        n = np.asarray(n, float)
         for _ in range(MIRROR_ITERS):
             M = P - 2.0 * (P @ n - d)[:, None] * n
             dist, j = tree.query(M)
+            err = float(np.median(dist))
+            if err < best[0]:  # every plane tried counts: the iteration is not a descent of this error
+                best = (err, n.copy(), d)
             keep = dist <= np.quantile(dist, 0.8)  # the asymmetric fifth (a missing tooth, a cut) does not pull
             D = P[keep] - P[j[keep]]  # a point minus its mirror partner: along the normal
-            D *= np.sign(D @ n)[:, None]
-            n_new = D.sum(axis=0)
-            n_new /= np.linalg.norm(n_new)
+            n_new = np.linalg.eigh(_scatter(D))[1][:, 2]  # the direction the pairs differ along most
+            n_new *= 1.0 if n_new @ n >= 0 else -1.0
             d = float(0.5 * (P[keep] + P[j[keep]]).mean(axis=0) @ n_new)
             moved = float(np.linalg.norm(n_new - n))
             n = n_new
@@ -160,7 +169,30 @@ def mirror_plane(V) -> tuple[np.ndarray, float, float]:
         err = float(np.median(tree.query(M)[0]))
         if err < best[0]:
             best = (err, n, d)
-    return best[1], best[2], best[0]
+    # the matching's update does not descend the median mismatch itself: polish the best plane on it
+    from scipy.optimize import minimize
+
+    err, n, d = best
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(n, u)
+    scale = float(np.sqrt(np.linalg.eigvalsh(_scatter(P - c))[-1] / len(P)))  # tilts in units of the arch's size
+
+    def plane(x):
+        m = n + x[0] * u + x[1] * w
+        m /= np.linalg.norm(m)
+        return m, d + x[2] * scale
+
+    def mismatch(x):
+        m, e = plane(x)
+        return float(np.median(tree.query(P - 2.0 * (P @ m - e)[:, None] * m)[0])) / scale
+
+    r = minimize(mismatch, np.zeros(3), method="Nelder-Mead",
+                 options={"initial_simplex": 0.02 * np.vstack([np.zeros(3), np.eye(3)]), "xatol": 1e-5, "fatol": 1e-7,
+                          "maxfev": 300})
+    if r.fun * scale < err:
+        (n, d), err = plane(r.x), float(r.fun * scale)
+    return n, d, err
 
 
 def _detail(V, N, at) -> np.ndarray:
@@ -180,7 +212,7 @@ def arch_axes(V, F) -> ArchAxes:
     detail = _detail(V, N, sub)
     sharp = sub[detail >= np.quantile(detail, 1.0 - DETAIL_SHARE)]
     T, NT = V[sharp], N[sharp]
-    _, vecs = np.linalg.eigh(np.cov((T - T.mean(axis=0)).T))
+    _, vecs = np.linalg.eigh(_scatter(T - T.mean(axis=0)))
     teeth = vecs[:, 0] - (vecs[:, 0] @ left) * left  # the horseshoe's normal, in the mirror plane
     teeth /= np.linalg.norm(teeth)
     if NT.sum(axis=0) @ teeth < 0:

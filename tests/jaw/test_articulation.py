@@ -13,9 +13,10 @@ import trimesh
 from conftest import shared_path
 from scipy.spatial.transform import Rotation
 
-# the target is 0.3 mm / 0.5°; BENCHMARKS.md ("Any start") has the measured spread over
-# starts and seeds; these bounds are the worst measured there plus 0.1 mm / 0.2°: a regression guard
-MAX_MM, MAX_DEG = 0.55, 0.8
+# a regression guard, not the goal: the search from a registration lands within the range its starts
+# cover (half their 3 mm / 5° spread); the target is 0.3 mm / 0.5°, and BENCHMARKS.md ("Any start")
+# has what it reaches (0.4-1.2 mm). Before the registration this case came back 5-11 mm off.
+MAX_MM, MAX_DEG = 1.5, 2.5
 
 
 def _error(M, G, P) -> tuple[float, float]:
