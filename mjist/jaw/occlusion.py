@@ -32,7 +32,7 @@ from ..query.api import Query
 from . import pair as jawmod
 from . import ranking
 from .exact import near_faces
-from .ranking import Candidate
+from .ranking import Candidate, shift_mm
 from .scenepair import JAW_TO_WORLD, UP, ScenePair, file_transform, resolve
 from .scenes import pair_scene
 
@@ -126,11 +126,6 @@ def pose_error(pair: ScenePair, pos, quat, ref_pos=None, ref_quat=None, points=N
     ang = Rotation.from_matrix(Pa[:3, :3] @ Pb[:3, :3].T).magnitude()
     return {"rotation_deg": float(np.degrees(ang)), "origin_mm": float(np.linalg.norm(np.asarray(pos) - ref_pos) * 1e3),
             "rms_mm": float(np.sqrt(np.mean(dv ** 2)) * 1e3), "max_mm": float(dv.max() * 1e3)}
-
-
-def _shift_mm(A, B, points) -> float:
-    """Largest shift (mm) of ``points`` (mandible frame) between mandible poses ``A`` and ``B``."""
-    return float(np.linalg.norm(points @ (A[:3, :3] - B[:3, :3]).T + (A[:3, 3] - B[:3, 3]), axis=1).max() * 1e3)
 
 
 POLISH_GJK_TOL = 1e-9  # coal's collision test in the polish (its default 1e-6 touches at ~1 µm)
@@ -274,7 +269,7 @@ def search(scene=None, *, data=None, starts: int = 64, translation: float | None
             # the occlusal surfaces are those that meet: re-pick them where the best start closed
             # (a pair given far from its occlusion has its reference where only the front teeth meet)
             best = _best(judged, settle)
-            if _shift_mm(judged[best].pose, picked, jp.sample.mandible_points) > BASIN_MM:
+            if shift_mm(judged[best].pose, picked, jp.sample.mandible_points) > BASIN_MM:
                 picked = judged[best].pose
                 jp.sample = _sample(jp, picked)
                 judged = _judge_all(jp, final)
@@ -422,7 +417,7 @@ def _basins(jp: ScenePair, judged: list[ranking.Judgement], settle: list[dict]) 
     groups: list[list[int]] = []
     for i in order:
         for g in groups:
-            if _shift_mm(judged[i].pose, judged[g[0]].pose, pts) < BASIN_MM:
+            if shift_mm(judged[i].pose, judged[g[0]].pose, pts) < BASIN_MM:
                 g.append(i)
                 break
         else:
@@ -516,8 +511,8 @@ def _close(jp: ScenePair, X, seconds: float, nthread: int, progress: bool, seats
             if not np.all(np.isfinite(st[k, -1])) or st[k, -1, 0] < t_end[k] - 0.5 * dt:  # reset after a blow-up
                 settle[i].update(unstable=True, seconds=elapsed)
                 continue
-            step = _shift_mm(pose(last), pose(prev), pts)
-            drift = _shift_mm(pose(last), pose(ago), pts) / (back * dt)
+            step = shift_mm(pose(last), pose(prev), pts)
+            drift = shift_mm(pose(last), pose(ago), pts) / (back * dt)
             settle[i].update(drift_mm_s=drift, speed_mm_s=step / dt, last_step_mm=step, seconds=elapsed)
             if drift < SETTLED and step / dt < SETTLED:
                 settle[i]["settled"] = True

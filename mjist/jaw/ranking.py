@@ -148,6 +148,11 @@ def distances(s: OcclusalSample, mandible_pose) -> tuple[np.ndarray, np.ndarray,
     return a, ra, b, rb
 
 
+def shift_mm(A, B, points) -> float:
+    """Largest shift (mm) of ``points`` (a mesh's frame) between its poses ``A`` and ``B`` (4x4)."""
+    return float(np.linalg.norm(points @ (A[:3, :3] - B[:3, :3]).T + (A[:3, 3] - B[:3, 3]), axis=1).max() * 1e3)
+
+
 def hinge_turn(s: OcclusalSample, mandible_pose, phi: float) -> np.ndarray:
     """The mandible pose turned by ``phi`` (rad, positive opens) about the hinge axis."""
     T = np.eye(4)

@@ -47,6 +47,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .ranking import shift_mm
+
 DETAIL_RADIUS = 1.0e-3  # m: neighbourhood over which a vertex's normal variation is measured (about a cusp's size)
 DETAIL_POINTS = 30000  # vertices (evenly over the vertex list) where it is measured
 DETAIL_SHARE = 0.2  # the share of vertices with the most normal variation taken as the crowns' detail
@@ -324,10 +326,6 @@ class _Dock:
         self.soft, self.cap = MEET_SOFT_TOUCH, MEET_CAP
 
 
-def _shift_mm(A, B, points) -> float:
-    return float(np.linalg.norm(points @ (A[:3, :3] - B[:3, :3]).T + (A[:3, 3] - B[:3, 3]), axis=1).max() * 1e3)
-
-
 def register(maxilla, mandible) -> Registration:
     """Place the mandible against the maxilla from the arches' shapes, ignoring their given poses.
 
@@ -376,7 +374,7 @@ def register(maxilla, mandible) -> Registration:
     poses = [dock.touch(dock.pose(x)) for _, x in refined]
     runner = None
     for (f, _), P in zip(refined[1:], poses[1:]):
-        shift = _shift_mm(P, poses[0], dock.pd)
+        shift = shift_mm(P, poses[0], dock.pd)
         if shift >= RUNNER_UP_MM:
             runner = (f * 1e3, shift)
             break
