@@ -7,6 +7,7 @@ imported here only, when a Ray backend is made.
 """
 from __future__ import annotations
 
+import os
 import socket
 import time
 
@@ -15,6 +16,34 @@ from . import stages
 RETRIES = 2  # a task whose worker dies (killed, out of memory) runs again this many times
 INSTALL = ("mjist cohort runs its patients on Ray, which is not installed: pip install 'mjist[cluster]' "
            "(or run on this machine one patient at a time with --serial)")
+
+
+# Ray's switch between a single-machine run (every server on the loopback address) and a cluster
+# (servers on the node's external address). Ray reads it at import in each of its processes.
+_LOCAL_SWITCH = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+def import_ray(local: bool):
+    """``ray``, set up so that a ``local`` run's servers (GCS, raylets, workers, agents) listen
+    on 127.0.0.1 only. A cluster run (an address given) leaves Ray's networking as it is.
+
+    Ray resolves ``127.0.0.1`` given as the node address to the machine's external address,
+    unless it runs in single-machine mode; that mode is chosen by an environment variable its
+    server processes inherit, and by a constant the driver reads at each lookup (set here too
+    when ``ray`` was imported before this call)."""
+    if local:
+        os.environ[_LOCAL_SWITCH] = "0"
+    import ray
+    from ray._private import ray_constants
+
+    if local:
+        ray_constants.ENABLE_RAY_CLUSTER = False
+    return ray
+
+
+def loopback_only(node_ip: str) -> bool:
+    """Whether Ray's node address is a loopback address."""
+    return node_ip.startswith("127.") or node_ip in ("::1", "localhost")
 
 
 def run_patient(patient, out_dir: str, settings: dict, searched: dict | None = None) -> dict:
@@ -116,21 +145,26 @@ class Ray:
     name = "ray"
 
     def __init__(self, out_dir: str, settings: dict, *, workers: int | None = None, address: str | None = None):
+        local = address is None and not os.environ.get("RAY_ADDRESS")
         try:
-            import ray
+            ray = import_ray(local)
         except ImportError as exc:
             raise RuntimeError(INSTALL) from exc
         self.ray = ray
         self._own = not ray.is_initialized()
         if self._own:
-            import os
-
             # mjist's and numba's settings (MJIST_CACHE, NUMBA_CACHE_DIR, MUJOCO_GL, ...) reach every worker
             env = {k: v for k, v in os.environ.items() if k.startswith(("MJIST_", "NUMBA_", "MUJOCO_GL"))}
             # a task holds one CPU: numba's threads beyond that would oversubscribe the node
             env.setdefault("NUMBA_NUM_THREADS", "1")
             ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
                      log_to_driver=False, logging_level="ERROR", runtime_env={"env_vars": env})
+            node_ip = ray.util.get_node_ip_address()
+            if local and not loopback_only(node_ip):
+                ray.shutdown()
+                raise RuntimeError(f"the local Ray started on {node_ip}, not on 127.0.0.1; this Ray version ignores "
+                                   f"{_LOCAL_SWITCH}=0 and would listen on the network: run the cohort on this machine with "
+                                   "--serial, or on a Ray cluster you started with --address")
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
         opts = {"num_cpus": 1, "max_retries": RETRIES}
         self._prepare = ray.remote(**opts)(_prepare_task)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -54,7 +55,28 @@ def two_workers(cohort_input, cache, tmp_path_factory):
     return out, run(cohort_input, out, workers=2, progress=False, cache=cache, **FAST)
 
 
-def test_bad_patient_is_an_error_row_and_the_others_finish(two_workers):
+def _against_design(patient, result):
+    """The best candidate (``occlusion.json``'s transform of the mandible file) against the design
+    brought to first touch along +y by coal, computed here: largest shift of the mandible's
+    vertices within 3 mm of the maxilla and the rotation (``_reference``); and the sides of the
+    midline (x) where the meshes come within 0.1 mm of each other there."""
+    import _reference as ref
+    import numpy as np
+    import trimesh
+
+    mx, md = (trimesh.load(patient / f"{n}.obj", force="mesh", process=False) for n in ("maxilla", "mandible"))
+    a, Vd = (mx.vertices, mx.faces), np.asarray(md.vertices)
+    V0 = Vd + [0.0, ref.first_touch(a, (Vd, md.faces), [0.0, 1.0, 0.0], reach=3e-3), 0.0]
+    idx = ref.near_vertices(V0, a, 3e-3)
+    M = np.asarray(json.loads((result / "occlusion.json").read_text())["mandible_transform"][0])
+    Vc = Vd @ M[:3, :3].T + M[:3, 3]
+    e = {"max_mm": ref.largest_shift(Vc[idx], V0[idx]) * 1e3, "rotation_deg": ref.rotation_between_deg(Vc[idx], V0[idx])}
+    near = ref.near_vertices(Vc, a, 1e-4)  # articulating paper: as the ranking counts a contact
+    sides = {"left" if x > 0 else "right" for x in Vc[near, 0]}
+    return e, sides
+
+
+def test_bad_patient_is_an_error_row_and_the_others_finish(two_workers, cohort_input):
     out, s = two_workers
     assert (s["patients"], s["done"], s["failed"], s["backend"]) == (3, 2, 1, "ray")
     rows = {r["patient"]: r for r in _rows(out / "cohort.csv")}
@@ -62,8 +84,14 @@ def test_bad_patient_is_an_error_row_and_the_others_finish(two_workers):
     assert "broken" in rows["broken"]["error"] or "maxilla" in rows["broken"]["error"]
     for name in GOOD:
         r = rows[name]
-        assert r["status"] == "ok" and r["both_sides"] in ("True", "False") and float(r["design_max_mm"]) < 2.0
-        assert 0.0 < float(r["interocclusal_mm"]) < 6.0 and r["settled"] in ("True", "False")  # 2 x the 3 mm cap at most
+        e, sides = _against_design(cohort_input / name, out / "patients" / name)
+        print(name, "vs design at first touch:", e, "contact sides", sides, "row", r["design_max_mm"], r["both_sides"])
+        # a regression guard at these coarse settings (1 mm trees, 4 starts; measured 0.26-0.37 mm):
+        # scripts/bench_cohort.py measures the search's accuracy
+        assert r["status"] == "ok" and e["max_mm"] < 0.6 and e["rotation_deg"] < 1.0, e
+        assert float(r["design_max_mm"]) == pytest.approx(e["max_mm"], abs=0.35)  # the row measures from the design itself
+        assert r["both_sides"] == str(sides == {"left", "right"})
+        assert 0.0 < float(r["interocclusal_mm"]) < 6.0  # 2 x the 3 mm cap at most
         for f in ("occlusion.json", "landscape.png", "contact_map.json", "contact_map_maxilla.png", "result.json"):
             assert (out / "patients" / name / f).exists(), f
     assert (out / "cohort.png").exists()
@@ -112,11 +140,13 @@ def test_manifest_gives_per_patient_options(cohort_input, tmp_path):
         discover(m)
 
 
-def test_without_ray_the_command_says_how_to_install_it(tmp_path, monkeypatch):
+def test_without_ray_the_command_says_how_to_install_it(tmp_path, monkeypatch, capsys):
     from mjist import cli
 
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails
     assert cli.main(["cohort", str(tmp_path), "--out", str(tmp_path / "o"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "pip install 'mjist[cluster]'" in err and "--serial" in err, err
 
 
 def test_the_rest_of_mjist_does_not_import_ray():
@@ -124,6 +154,35 @@ def test_the_rest_of_mjist_does_not_import_ray():
             "print(json.dumps('ray' in sys.modules))")
     out = subprocess.run([sys.executable, "-c", "import json; " + code], capture_output=True, text=True, check=True)
     assert json.loads(out.stdout) is False
+
+
+def test_a_local_ray_listens_on_loopback_only(tmp_path):
+    """A local cohort backend (no address) starts Ray whose every listening socket, in the
+    driver and in each process Ray started, is on a loopback address (read from the kernel's
+    socket table by psutil, not from Ray)."""
+    code = """
+import json, os, psutil
+from mjist.cohort import backends
+b = backends.make("ray", OUT, {}, workers=1)
+assert b.map(lambda x: abs(x), [(-2,), (3,)]) == [2, 3]  # a task ran
+me = psutil.Process()
+procs = [me, *me.children(recursive=True)]
+listening = []
+for p in procs:
+    try:
+        listening += [(p.name(), c.laddr.ip) for c in p.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
+    except psutil.Error:
+        pass
+b.close()
+print(json.dumps(listening))
+""".replace("OUT", repr(str(tmp_path)))
+    env = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    listening = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(listening) >= 3  # the GCS, a raylet and the driver's own server at least
+    outside = [(name, ip) for name, ip in listening if not (ip.startswith("127.") or ip in ("::1", "::ffff:127.0.0.1"))]
+    assert not outside, f"Ray processes listen beyond loopback: {outside}"
 
 
 @pytest.mark.slow
@@ -137,6 +196,9 @@ def test_a_cohort_survives_losing_a_node(cohort_input, cache, tmp_path):
 
     from ray.cluster_utils import Cluster
 
+    from mjist.cohort.backends import import_ray
+
+    import_ray(local=True)  # the test's cluster is local: on loopback, reached through its address
     reference = run(cohort_input, tmp_path / "serial", serial=True, progress=False, cache=cache, **FAST)
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
     node = cluster.add_node(num_cpus=2)
