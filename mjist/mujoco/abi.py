@@ -97,88 +97,95 @@ _PROBE_XML = """
   </worldbody>
 </mujoco>
 """
-# fields the hook reads: pointers (found by value) and counters (found by value, then checked)
+# fields the hook reads: pointers to mjData's arrays, the simulation time and the arena counters
 _POINTER_FIELDS = ("geom_xpos", "geom_xmat", "xpos", "xquat", "xipos", "mocap_pos", "mocap_quat", "qfrc_passive")
 _OFFSETS: dict | None = None
+
+# size and alignment (bytes) of the C types mjData's declaration uses, on the 64-bit ABIs
+# MuJoCo ships for (x86-64, AArch64: LP64); its own structs are laid out from their fields
+_C_TYPES = {"char": 1, "unsigned char": 1, "mjtByte": 1, "mjtBool": 1, "short": 2, "int": 4, "unsigned int": 4,
+            "float": 4, "mjtNum": 8, "double": 8, "size_t": 8, "uintptr_t": 8, "mjtSize": 8, "int64_t": 8,
+            "uint64_t": 8}
+
+
+def _type_layout(t) -> tuple[int, int]:
+    """``(size, alignment)`` of an introspected C type (C layout rules)."""
+    from mujoco.introspect import ast_nodes as A
+
+    if isinstance(t, A.PointerType):
+        return 8, 8
+    if isinstance(t, A.ArrayType):
+        size, align = _type_layout(t.inner_type)
+        return size * int(np.prod(t.extents)), align
+    if isinstance(t, A.ValueType):
+        if t.name in _C_TYPES:
+            return _C_TYPES[t.name], _C_TYPES[t.name]
+        if t.name in _mj_structs.STRUCTS:
+            _, size, align = struct_layout(t.name)
+            return size, align
+        if t.name.startswith("mjt"):  # an enum
+            return 4, 4
+    raise MuJoCoABIError(f"mjData declares a field of type {t!r} whose size mjist does not know: use MuJoCo 4.0")
+
+
+def struct_layout(name: str) -> tuple[dict, int, int]:
+    """Byte offset of each field of MuJoCo struct ``name`` from its declaration (MuJoCo's
+    introspection: field order and types), the struct's size and its alignment."""
+    offsets, at, align = {}, 0, 1
+    for f in _mj_structs.STRUCTS[name].fields:
+        size, a = _type_layout(f.type)
+        at = -(-at // a) * a
+        offsets[f.name] = at
+        at += size
+        align = max(align, a)
+    return offsets, -(-at // align) * align, align
 
 
 def _words(address: int, n: int) -> np.ndarray:
     return np.frombuffer((ctypes.c_uint64 * n).from_address(address), dtype=np.uint64).copy()
 
 
-def _find_pointer(d, name: str, words: np.ndarray, anchor: int | None = None) -> int:
-    """Byte offset of the word holding ``d.<name>``'s address. The words read run past mjData
-    into other memory, which can hold the same address too: a hit counts only where the
-    introspection order puts it (mjData's pointer arrays are consecutive 8-byte fields), from
-    the ``anchor`` (geom_xpos's offset) or, for geom_xpos itself, with every probed field's
-    address where that order puts it, the first such block (the words start at mjData)."""
-    ptr = getattr(d, name).ctypes.data
-    hits = np.flatnonzero(words == np.uint64(ptr))
-    names = [f.name for f in _mj_structs.STRUCTS["mjData"].fields]
-
-    def at(h, field):
-        i = h + names.index(field) - names.index("geom_xpos")
-        return 0 <= i < len(words) and int(words[i]) == getattr(d, field).ctypes.data
-
-    if anchor is not None:
-        hits = hits[hits * 8 == anchor + 8 * (names.index(name) - names.index("geom_xpos"))]
-    else:
-        hits = np.array([h for h in hits if all(at(h, f) for f in _POINTER_FIELDS)], np.int64)
-        # the words start at mjData itself: a whole copy of its pointer block further on (the
-        # Python wrapper's, a freed neighbour's) lies beyond the struct, so the first one is mjData's
-        hits = hits[:1]
-    if len(hits) != 1:
-        raise MuJoCoABIError(
-            f"cannot locate mjData.{name} in this MuJoCo build ({len(hits)} candidate offsets): "
-            "the struct layout differs from the verified one; use MuJoCo 4.0"
-        )
-    return int(hits[0]) * 8
+def _check(words: np.ndarray, d, off: dict) -> None:
+    """Verify the offsets ``off`` by value against ``d`` (an ``MjData``) whose memory, from its
+    start to the end of the struct, is ``words``; raise naming the first field that differs."""
+    for name in _POINTER_FIELDS:
+        arr = getattr(d, name)
+        if arr.size and int(words[off[name] // 8]) != arr.ctypes.data:
+            raise MuJoCoABIError(f"mjData.{name} is not at byte {off[name]}, where MuJoCo's declaration of mjData puts it: "
+                                 "this MuJoCo build's struct layout differs from its headers; use MuJoCo 4.0 from pip")
+    if words[off["time"] // 8] != np.array([d.time]).view(np.uint64)[0]:
+        raise MuJoCoABIError(f"mjData.time is not at byte {off['time']}, where MuJoCo's declaration of mjData puts it: "
+                             "use MuJoCo 4.0 from pip")
+    for name in ("narena", "pstack", "parena"):
+        if int(words[off[name] // 8]) != int(getattr(d, name)):
+            raise MuJoCoABIError(f"mjData.{name} is not at byte {off[name]}, where MuJoCo's declaration of mjData puts it: "
+                                 "use MuJoCo 4.0 from pip")
 
 
 def data_offsets() -> dict:
-    """Byte offsets inside ``mjData`` of the fields the hook reads, probed once.
+    """Byte offsets inside ``mjData`` of the fields the hook reads.
 
-    Found by value on a model where every probed array is non-empty (zero-sized arrays
-    share addresses), then checked against the introspection field order.
+    Computed from the struct's declaration (field order and types from MuJoCo's introspection,
+    laid out by C rules) and verified once by value on a probe ``MjData`` whose every probed
+    array is non-empty; reads never go past ``sizeof(mjData)``.
     """
     global _OFFSETS
     if _OFFSETS is None:
         check_version()
+        layout, size, _ = struct_layout("mjData")
+        off = {k: layout[k] for k in (*_POINTER_FIELDS, "time", "narena", "pstack", "parena", "threadpool")}
         m = mujoco.MjModel.from_xml_string(_PROBE_XML)
         d = mujoco.MjData(m)
-        words = _words(d._address, 65536)  # mjData holds big inline stat arrays (~160 kB)
-        off = {"geom_xpos": _find_pointer(d, "geom_xpos", words)}
-        off.update({name: _find_pointer(d, name, words, off["geom_xpos"]) for name in _POINTER_FIELDS[1:]})
         d.time = 1234.5678125  # an exactly representable, unlikely value
-        words = _words(d._address, 65536)
-        hits = np.flatnonzero(words == np.array([d.time]).view(np.uint64)[0])
-        if len(hits) != 1:
-            raise MuJoCoABIError("cannot locate mjData.time in this MuJoCo build: use MuJoCo 4.0")
-        off["time"] = int(hits[0]) * 8
-        # the arena counters sit at the start of mjData: narena, nbuffer, nplugin, pstack, pbase, parena
-        names = [f.name for f in _mj_structs.STRUCTS["mjData"].fields]
-        if names[:6] != ["narena", "nbuffer", "nplugin", "pstack", "pbase", "parena"]:
-            raise MuJoCoABIError("mjData's leading fields differ from MuJoCo 4.0's: use MuJoCo 4.0")
-        off["narena"], off["pstack"], off["parena"] = 0, 24, 40
-        off["threadpool"] = 48
-        if int(words[0]) != d.narena or int(words[3]) != d.pstack or int(words[5]) != d.parena:
-            raise MuJoCoABIError("mjData arena counters are not where MuJoCo 4.0 keeps them: use MuJoCo 4.0")
+        _check(_words(d._address, size // 8), d, off)
+        off["sizeof"] = size
         _OFFSETS = off
     return dict(_OFFSETS)
 
 
 def verify_offsets(d: mujoco.MjData, off: dict) -> None:
-    """Check the probed offsets on a real ``MjData`` (refuse to run on a mismatch)."""
-    words = _words(d._address, max(off.values()) // 8 + 1)
-    for name in _POINTER_FIELDS:
-        arr = getattr(d, name)
-        if arr.size and int(words[off[name] // 8]) != arr.ctypes.data:
-            raise MuJoCoABIError(f"mjData.{name} is not at the probed offset for this model: the MuJoCo build is not the verified one")
-    t = np.array([d.time]).view(np.uint64)[0]
-    if words[off["time"] // 8] != t:
-        raise MuJoCoABIError("mjData.time is not at the probed offset: the MuJoCo build is not the verified one")
-    if int(words[0]) != d.narena:
-        raise MuJoCoABIError("mjData.narena is not at offset 0: the MuJoCo build is not the verified one")
+    """Check the offsets on a real ``MjData`` (refuse to run on a mismatch, naming the field)."""
+    _check(_words(d._address, off["sizeof"] // 8), d, off)
 
 
 # --------------------------------------------------------------------------- numba intrinsics

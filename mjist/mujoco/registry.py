@@ -65,9 +65,7 @@ def _publish():
     for s, (t1, t2) in enumerate(SLOTS):
         root[ROOT_ORIG + s] = _ORIGINAL.get(abi.table_index(t1, t2), 0)
     root[ROOT_PASSIVE] = _PASSIVE["previous"]
-    entries = list(_ENTRIES.values())
-    if len(entries) > MAX_MODELS:
-        raise RuntimeError(f"at most {MAX_MODELS} models can be attached at once: detach some first")
+    entries = list(_ENTRIES.values())  # at most MAX_MODELS: add() refuses more
     for i, e in enumerate(entries):
         root[ROOT_MODELS + 2 * i] = e.address
         root[ROOT_MODELS + 2 * i + 1] = e.words.ctypes.data
@@ -148,6 +146,8 @@ def add(entry: ModelEntry) -> None:
         check_slots(entry.slots)
         if entry.address in _ENTRIES:
             raise RuntimeError("this MjModel is already attached: call handle.detach() first")
+        if len(_ENTRIES) >= MAX_MODELS:  # checked before the entry joins: a refusal leaves the registry as it was
+            raise RuntimeError(f"at most {MAX_MODELS} models can be attached at once: detach some first")
         _ENTRIES[entry.address] = entry
         _capture_passive()
         _publish()

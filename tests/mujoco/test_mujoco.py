@@ -1,5 +1,6 @@
 """The MuJoCo hook: IST contacts inside plain mj_step / mj_geomDistance / rollout, against coal."""
 import warnings
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
@@ -305,6 +306,37 @@ def test_distance_request_answers_as_the_contact_path_would(comb_file, cache):
         assert several > 0 and h.stats()["failed"] == 0
 
 
+def test_an_arena_too_small_for_the_scratch_says_how_large_to_make_it(comb_file, cache):
+    xml = COMB_XML.format(comb=comb_file, gtype="mesh", extra="").replace("<mujoco>", '<mujoco>\n  <size memory="4K"/>')
+    m = mujoco.MjModel.from_xml_string(xml)
+    with pytest.raises(ConfigError, match=r"the model's arena \(\d+ bytes\) is too small for the IST scratch .* "
+                                          r"raise it with <size memory=\"\d+M\"/>") as info:
+        A.attach(m, cache_dir=cache)
+    fix = info.value.args[0].split('memory="')[1].split('"')[0]
+    m = mujoco.MjModel.from_xml_string(xml.replace('memory="4K"', f'memory="{fix}"'))  # the fix it names works
+    A.attach(m, cache_dir=cache).detach()
+    assert registry.table_is_original()
+
+
+def test_more_models_than_the_registry_holds_are_refused_and_leave_it_usable(comb_file, cache):
+    from mjist.mujoco.layout import MAX_MODELS
+
+    handles = [A.attach(_model(comb_file), cache_dir=cache) for _ in range(MAX_MODELS)]
+    try:
+        extra = _model(comb_file)
+        with pytest.raises(RuntimeError, match=f"at most {MAX_MODELS} models can be attached at once: detach some first"):
+            A.attach(extra, cache_dir=cache)
+        handles.pop().detach()
+        handles.append(A.attach(extra, cache_dir=cache))  # the refusal left nothing behind
+        d = mujoco.MjData(extra)
+        _interlocked(extra, d, gap_z=-0.002)  # the teeth 0.5 mm into the other comb's base
+        assert d.ncon > 0 and handles[-1].stats()["contacts"] > 0  # and the last model collides through mjist
+    finally:
+        for h in handles:
+            h.detach()
+    assert registry.table_is_original()
+
+
 def test_bad_config_is_named(comb_file, cache):
     for extra, msg in [
         ('<text name="mjist_geomz" data="all"/>', "unknown mjist setting"),
@@ -315,6 +347,8 @@ def test_bad_config_is_named(comb_file, cache):
         ('<text name="mjist_coupling" data="upper"/>', "two bodies"),
         ('<text name="mjist_coupling" data="upper lower"/>', "mocap body"),
         ('<numeric name="mjist_coupling_gains" data="1 2 3"/>', "4 numbers"),
+        ('<numeric name="mjist_coupling_gains" data="1 2 -3 4"/>',
+         r"mjist_coupling_gains=\[1.0, 2.0, -3.0, 4.0\] needs 4 numbers ≥ 0: k_t \(N/m\) c_t \(N·s/m\) k_r"),
         ('<numeric name="mjist_contacts" data="0"/>', "mjist_contacts"),
         ('<numeric name="mjist_max_error" data="-1"/>', "positive"),
         ('<text name="mjist_max_error" data="1"/>', "<numeric>"),
@@ -687,28 +721,49 @@ def test_passive_callback_chains_and_is_restored(cache):
         cb.value = before
 
 
-def test_data_offsets_are_found_when_other_memory_holds_the_same_address():
-    """The probe reads past mjData into other memory, which can hold a copy of an array's
-    address (a cohort worker once found geom_xpos's twice and refused to run): the copies are
-    told apart by where mjData's field order puts every probed pointer."""
+def test_data_offsets_come_from_the_declaration_and_match_every_array():
+    """mjData's layout computed from its declaration (introspected field order and types, C
+    rules) puts every pointer field of a live MjData, not only the probed ones, where the
+    wrapper's arrays live, and its counters and time where their values are; reads stop at the
+    struct's end, so copies of the pointer block in the memory beyond it change nothing."""
+    from mujoco.introspect import ast_nodes
+
+    from mjist.mujoco import abi
+
+    layout, size, _ = abi.struct_layout("mjData")
+    m = mujoco.MjModel.from_xml_string(abi._PROBE_XML)
+    d = mujoco.MjData(m)
+    mujoco.mj_step(m, d)
+    words = abi._words(d._address, size // 8)
+    checked = 0
+    for f in abi._mj_structs.STRUCTS["mjData"].fields:
+        arr = getattr(d, f.name, None)
+        word = int(words[layout[f.name] // 8])
+        # a NULL word is an arena array this step did not allocate (the wrapper shows a placeholder)
+        if isinstance(f.type, ast_nodes.PointerType) and isinstance(arr, np.ndarray) and arr.size and word:
+            assert word == arr.ctypes.data, f.name
+            checked += 1
+    assert checked >= 50
+    assert words[layout["time"] // 8] == np.array([d.time]).view(np.uint64)[0]
+    off = abi.data_offsets()
+    assert all(off[k] == layout[k] for k in abi._POINTER_FIELDS) and off["sizeof"] == size
+    # copies of the whole pointer block planted beyond the struct: nothing there is read
+    beyond = np.concatenate([words, np.tile(words[layout["mocap_pos"] // 8:layout["qfrc_passive"] // 8 + 1], 3)])
+    abi._check(beyond[: size // 8], d, off)
+    abi.verify_offsets(d, off)
+
+
+def test_a_field_where_the_declaration_does_not_put_it_is_refused_by_name():
     from mjist.mujoco import abi
 
     m = mujoco.MjModel.from_xml_string(abi._PROBE_XML)
     d = mujoco.MjData(m)
-    words = abi._words(d._address, 65536)
     off = abi.data_offsets()
-    words[30000] = np.uint64(d.geom_xpos.ctypes.data)  # a stray copy beyond the struct
-    words[30001] = np.uint64(d.geom_xmat.ctypes.data)
-    assert abi._find_pointer(d, "geom_xpos", words) == off["geom_xpos"]
-    assert abi._find_pointer(d, "geom_xmat", words, off["geom_xpos"]) == off["geom_xmat"]
-    # a whole copy of the pointer block beyond the struct (as a cohort worker and `mjist occlusion`
-    # once met: "2 candidate offsets"): mjData's own block comes first
-    names = [f.name for f in abi._mj_structs.STRUCTS["mjData"].fields]
-    base = off["geom_xpos"] // 8 - names.index("geom_xpos")
-    block = words.copy()
-    for f in abi._POINTER_FIELDS:
-        block[40000 + names.index(f)] = words[base + names.index(f)]
-    assert abi._find_pointer(d, "geom_xpos", block) == off["geom_xpos"]
-    words[off["geom_xpos"] // 8] = 0  # and with the true one gone, the copies alone are refused
-    with pytest.raises(abi.MuJoCoABIError, match="geom_xpos"):
-        abi._find_pointer(d, "geom_xpos", words)
+    words = abi._words(d._address, off["sizeof"] // 8)
+    for field in ("geom_xmat", "time", "pstack"):
+        bad = words.copy()
+        bad[off[field] // 8] ^= np.uint64(8)
+        with pytest.raises(abi.MuJoCoABIError, match=rf"mjData\.{field} is not at byte {off[field]}.*MuJoCo 4\.0"):
+            abi._check(bad, d, off)
+    with pytest.raises(abi.MuJoCoABIError, match="mjData declares a field of type .* use MuJoCo 4.0"):
+        abi._type_layout(SimpleNamespace())  # a type the layout does not know

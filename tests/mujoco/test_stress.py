@@ -242,3 +242,32 @@ def test_exit_directions_cache_is_content_keyed_and_survives_a_corrupt_file(tmp_
         f.write_bytes(b"not an array")
     c = cached_exits(N, V, F, compute, folder=tmp_path)
     assert len(calls) == 3 and (c == 3.0).all()
+
+
+@pytest.mark.slow  # 200 processes of about 3 s each
+@pytest.mark.stress
+def test_two_hundred_fresh_processes_attach_without_a_refusal(tmp_path):
+    """Each fresh process lays its heap out anew: the bundled closure scene attaches, steps and
+    detaches in 200 of them (two at a time), with no ABI refusal and the same contacts in each."""
+    import subprocess
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+
+    code = ("import mujoco, mjist\n"
+            "from mjist.jaw import BUNDLED\n"
+            "m, h = mjist.load_model(str(BUNDLED / 'jaw_closure.xml'), progress=False)\n"
+            "d = mujoco.MjData(m)\n"
+            "for _ in range(5):\n    mujoco.mj_step(m, d)\n"
+            "print('contacts', d.ncon, repr(float(d.qpos[0])))\n"
+            "h.detach()\n")
+    env = {**os.environ, "MJIST_CACHE": str(tmp_path / "cache")}
+
+    def attach(_):
+        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+        return p.returncode, (p.stdout.strip().splitlines() or [""])[-1], p.stderr.strip()[-400:]
+
+    with ThreadPoolExecutor(2) as pool:
+        runs = list(pool.map(attach, range(200)))
+    refused = [r for r in runs if r[0] != 0]
+    assert not refused, f"{len(refused)} of 200 failed, e.g. {refused[0][2]}"
+    assert len({r[1] for r in runs}) == 1, {r[1] for r in runs}  # the same contacts and pose in every process
