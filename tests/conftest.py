@@ -5,11 +5,22 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"
+MISSING_IN_CI = ("{path} is missing: CI (CI=true) runs the real-data tests (marked 'shared') and does not skip "
+                 "them; put the shared data folder beside the project (../shared/data) or unset CI to skip them")
+
+
+def _in_ci() -> bool:
+    import os
+
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
 def pytest_configure(config):
-    """With pytest-xdist workers, compile the shared kernels once in the controller first
+    """Under CI, stop at once when the shared real data is missing (its tests would only skip).
+    With pytest-xdist workers, compile the shared kernels once in the controller first
     (``_warm``); each worker then loads them from numba's cache."""
+    if _in_ci() and not SHARED.is_dir():
+        raise pytest.UsageError(MISSING_IN_CI.format(path=SHARED))
     if getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput"):
         import sys
 
@@ -40,9 +51,12 @@ def load_script(*parts):
 
 
 def shared_path(*parts) -> Path:
-    """A file of ../shared/data, or skip the test when the folder is absent (fresh clones)."""
+    """A file of ../shared/data, or skip the test when the folder is absent (fresh clones; under
+    CI the test fails instead)."""
     p = SHARED.joinpath(*parts)
     if not p.exists():
+        if _in_ci():
+            pytest.fail(MISSING_IN_CI.format(path=p), pytrace=False)
         pytest.skip(f"{p} not present (shared data is only beside the project on dev/CI machines)")
     return p
 

@@ -28,14 +28,35 @@ def test_cache_is_dropped_when_a_source_changes_and_kept_otherwise(tmp_path):
     assert not jitcache.check(tmp_path)
 
 
-def test_the_package_stamp_matches_its_sources():
+def test_importing_a_changed_package_drops_its_stale_kernels(tmp_path):
+    """The real import: a copy of the package, imported in fresh processes, keeps a cached kernel
+    while its sources stay the same and drops it once one of them changes."""
+    import shutil
+    import subprocess
+    import sys
     from pathlib import Path
 
     import mjist
 
-    pkg = Path(mjist.__file__).parent
-    stamp = pkg / "__pycache__" / jitcache.STAMP
-    assert stamp.read_text() == jitcache.sources_digest(pkg)
+    copy = tmp_path / "mjist"
+    shutil.copytree(Path(mjist.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__", "models"))
+
+    def import_copy():
+        out = subprocess.run([sys.executable, "-c", "import mjist; print(mjist.__file__)"], cwd=tmp_path,
+                             capture_output=True, text=True, env={"PATH": "", "PYTHONPATH": str(tmp_path), "NUMBA_CACHE_DIR": ""})
+        assert out.returncode == 0, out.stderr[-1500:]
+        assert Path(out.stdout.strip()).parent == copy  # the copy, not the installed package
+
+    import_copy()
+    kernel = copy / "query" / "__pycache__" / "traverse._nearest-1.py311.nbi"
+    kernel.parent.mkdir(exist_ok=True)
+    kernel.write_bytes(b"cached")
+    import_copy()
+    assert kernel.exists()  # same sources: kept
+    with open(copy / "query" / "traverse.py", "a") as fh:
+        fh.write("\n# changed\n")
+    import_copy()
+    assert not kernel.exists()  # a source changed: dropped
 
 
 def test_a_change_in_one_subpackage_drops_every_subpackages_kernels(tmp_path):

@@ -64,6 +64,8 @@ def _row_options(row: dict, base: Path) -> dict:
         v = (row.get(k) or "").strip()
         if v:
             out[k] = tuple(float(x) for x in v.replace(",", " ").split()) if k == "hinge" else v
+            if k == "hinge" and len(out[k]) != 3:
+                raise ValueError(f"got {len(out[k])} numbers")
     return out
 
 

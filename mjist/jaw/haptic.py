@@ -143,11 +143,14 @@ def load_csv(path, dt: float) -> DevicePath:
             if not r or r[0].strip().startswith("#"):
                 continue
             try:
-                rows.append([float(x) for x in r])
+                row = [float(x) for x in r]
             except ValueError:
                 if rows:
                     raise ValueError(f"{path}: row {len(rows) + 1} is not 8 numbers: {r}") from None
                 continue  # a header
+            if len(row) != 8:
+                raise ValueError(f"{path}: row {len(rows) + 1} has {len(row)} numbers, not 8 (time, x, y, z, qw, qx, qy, qz)")
+            rows.append(row)
     a = np.asarray(rows, float)
     if a.ndim != 2 or a.shape[1] != 8 or a.shape[0] < 2:
         raise ValueError(f"{path}: need ≥ 2 rows of 8 numbers: time, x, y, z, qw, qx, qy, qz")

@@ -151,7 +151,7 @@ def test_inside_is_the_nonzero_rule(make, w_extra):
     assert (np.abs(np.rint(w[sd > 1e-3]) - w_extra) < 0.01).sum() > 10  # the region beyond the crossings
 
 
-@pytest.mark.slow  # 80 s: the CI set keeps the crossed-face and side tests
+@pytest.mark.slow  # 80 s: the default set keeps the crossed-face and side tests
 def test_inverted_pocket_is_filled():
     """The pocket (winding number -1) beyond a self-intersection is enclosed by the surface, so it
     is solid: spheres fill it and cover its faces, and ε meets the target (the rule "winding

@@ -34,7 +34,7 @@ def test_teeth_only_closure_rests_in_its_stored_occlusion(teeth_only, cache, tmp
     assert res["settled"] and res["true_distance_mm"] > -0.05  # resting on the teeth, not sunk into them
 
 
-@pytest.mark.slow  # the finding behind the stop; CI keeps the test with the stop
+@pytest.mark.slow  # the finding behind the stop; the default set keeps the test with the stop
 def test_without_the_condylar_stop_the_teeth_drive_it_back(teeth_only, cache, tmp_path):
     """The finding the guidance answers: the same scene with the plain ±3 mm slide ends far behind."""
     from mjist.jaw.demo import run_closure
@@ -51,6 +51,7 @@ def test_without_the_condylar_stop_the_teeth_drive_it_back(teeth_only, cache, tm
     assert mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "protrusion") >= 0
 
 
+@pytest.mark.shared
 def test_pair_given_open_is_closed_about_its_condyles(tmp_path):
     """The stored mandible turned 8° open about its condyles and moved 1 mm forward: moving it up
     first meets the condyles in their fossae (not an arch), so the pair is closed about the
@@ -88,6 +89,7 @@ def test_pair_given_open_is_closed_about_its_condyles(tmp_path):
     assert info["seat_uncertainty"] > 0 and json.loads((tmp_path / "scene" / "pair.json").read_text())["seat_uncertainty_mm"] > 0
 
 
+@pytest.mark.shared
 def test_touch_offset_from_vertex_rays_agrees_with_plain_bisection():
     """The stored CBCT pair moved along +y: the touch found from rays along up through every
     vertex (then a short bisection) is the plain bisection's within its tolerance, apart by

@@ -121,6 +121,7 @@ def test_held_contacts_follow_the_pose_exactly_on_flat_tips(comb_file, cache):
         assert all(r[0] == pytest.approx(-0.0005 - dz, abs=1e-8) for r in a)  # the float32 mesh: nm
 
 
+@pytest.mark.shared
 def test_cbct_slide_at_mujocos_defaults_settles_on_the_true_surfaces():
     """The shared CBCT mandible pushed up a slide into its maxilla (``scripts/bench_slide.py``) at
     MuJoCo's default timestep, solref and solimp, default trees: surface contacts come to rest

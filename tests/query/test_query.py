@@ -483,6 +483,7 @@ def test_surface_narrow_phase_input_is_named():
     assert q.contacts(I, I, method="distance", narrowphase="spheres").narrowphase == "spheres"
 
 
+@pytest.mark.shared
 def test_jaw_pair_distance_is_sound(tmp_path):
     jaw = shared_path("jaw")
     ma = mjist.load_mesh(jaw / "maxilla.obj")
@@ -510,3 +511,31 @@ def test_jaw_pair_distance_is_sound(tmp_path):
             assert r.distance - r.error_bound <= dc + TOL
             hits += r.colliding
     assert hits > 0
+
+
+def test_distance_batch_brackets_coal_and_equals_single_queries():
+    """``distance_batch`` over a sweep of frames: each frame's separation distance brackets coal's
+    exact distance within the certified band, and equals the one-frame ``distance`` there."""
+    ma, ta, ba = shape("torus")
+    mb, tb, bb = shape("bumpy")
+    q = Query(ta, tb)
+    rng = np.random.default_rng(11)
+    Pa = random_pose(rng, 0.0)
+    Pbs = []
+    for s in np.linspace(3.0, 1.6, 12):  # from well apart towards touching, turning as it comes
+        P = random_pose(rng, 0.0)
+        P[:3, 3] = Pa[:3, 3] + [s, 0.2, 0.1]
+        Pbs.append(P)
+    Pbs = np.array(Pbs)
+    out = q.distance_batch(Pa, Pbs)
+    assert out["distance"].shape == (12,) and np.all(out["visits"] > 0)
+    for i, P in enumerate(Pbs):
+        exact = coal_distance(ba, Pa, bb, P)
+        d = out["distance"][i]
+        if exact > 0:
+            assert exact <= d + TOL and d - ta.error_bound - tb.error_bound <= exact + TOL, (i, d, exact)
+        assert d == pytest.approx(q.distance(Pa, P).distance, abs=1e-12)
+    with pytest.raises(ValueError, match="method must be 'distance' or 'backtracking', got 'nearest'"):
+        q.distance_batch(Pa, Pbs, method="nearest")
+    with pytest.raises(ValueError, match="tolerance must be finite and ≥ 0, got nan"):
+        q.distance_batch(Pa, Pbs, tolerance=float("nan"))
