@@ -160,11 +160,30 @@ def _edge_defects(tm) -> tuple[int, int]:
     return int((counts == 1).sum()), int((counts > 2).sum())
 
 
+def _drop_internal_walls(tm, repairs: list) -> bool:
+    """Remove the faces that closed shells share (a crown's base on the gingiva, teeth on bone):
+    every face whose three vertices another face also uses, with that face. Such a wall lies
+    inside the union of the shells, so the outer surface keeps every face it had; what is left
+    is that surface, closed when the shells met only there. Returns whether any were removed."""
+    key = np.sort(np.asarray(tm.faces), axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    shared = counts[inverse.ravel()] > 1
+    if not shared.any():
+        return False
+    tm.update_faces(~shared)
+    tm.remove_unreferenced_vertices()
+    repairs.append(f"removed {int(shared.sum())} faces of internal walls where closed shells met (the outer surface keeps "
+                   "every face)")
+    return True
+
+
 def _check_closed(tm, repair: bool, repairs: list, max_deviation=None):
     """Refuse an open or non-manifold surface, or close it (``geometry.repair``) when ``repair``,
     moving the input by at most ``max_deviation``. Returns the closed mesh and the closure report
     (``None`` when closed already)."""
     if tm.is_watertight:
+        return tm, None
+    if repair and _drop_internal_walls(tm, repairs) and tm.is_watertight:
         return tm, None
     if repair:
         from .repair import close_surface

@@ -193,6 +193,9 @@ def _closure_notes(raw: dict, o, notes: list) -> None:
     import warnings
 
     for i, (name, mesh) in enumerate(raw.items()):
+        for r in mesh.repairs:
+            if "internal walls" in r:  # shells glued together (crowns on gingiva): said, though nothing moved
+                notes.append(f"{name}: {r}")
         c = mesh.closure
         if c is None:
             continue

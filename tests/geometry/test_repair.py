@@ -112,3 +112,66 @@ def test_ct_jaw_split_along_seams_closes_by_the_winding_number_or_says_why():
     near = BVH.of_triangles(V, F).distance(Vo, V, F)
     far_from_hole = np.linalg.norm(Vo - V[0], axis=1) > 6.0
     assert np.percentile(near[far_from_hole], 99) <= 0.5
+
+
+def _glued(m, axis=1, frac=0.6):
+    """Closed ``m`` cut where its faces rise above the ``frac`` quantile along ``axis`` into two
+    shells, each closed by the same fan cap over every cut loop, merged into one file: shells
+    that share edges (the loops) and faces (the caps), as a lab exports crowns on gingiva."""
+    V, F = np.asarray(m.vertices, float), np.asarray(m.faces)
+    c = V[F].mean(axis=1)[:, axis]
+    top = c > np.quantile(c, frac)
+    D = np.concatenate([F[top][:, [0, 1]], F[top][:, [1, 2]], F[top][:, [2, 0]]])
+    und = {tuple(sorted(e)) for e in np.concatenate([F[~top][:, [0, 1]], F[~top][:, [1, 2]], F[~top][:, [2, 0]]]).tolist()}
+    nxt = {a: b for a, b in D.tolist() if (min(a, b), max(a, b)) in und}  # the top piece's boundary, as it runs
+    caps, seen = [], set()
+    for a in list(nxt):
+        if a in seen:
+            continue
+        loop, b = [a], nxt[a]
+        seen.add(a)
+        while b != a:
+            loop.append(b)
+            seen.add(b)
+            b = nxt[b]
+        V = np.vstack([V, V[loop].mean(axis=0)])
+        caps += [[loop[(i + 1) % len(loop)], loop[i], len(V) - 1] for i in range(len(loop))]
+    caps = np.array(caps)
+    return trimesh.Trimesh(V, np.vstack([F[top], caps, F[~top], caps[:, ::-1]]), process=False), len(caps)
+
+
+def test_closed_shells_glued_along_edges_and_faces_load_as_their_outer_surface():
+    """Two closed shells sharing an edge loop and the faces inside it (non-manifold edges): the
+    shared wall is dropped, every face of the outer surface kept, nothing moved (trimesh's
+    volume and faces of the original)."""
+    from mjist.geometry.mesh import load_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=10.0)
+    glued, walls = _glued(sphere)
+    nonmanifold = int((np.bincount(glued.edges_unique_inverse) > 2).sum())
+    assert nonmanifold > 0 and walls > 0
+    with pytest.raises(MeshError, match="non-manifold edges shared by more than two faces"):
+        load_mesh(glued)
+    m = load_mesh(glued, repair=True)
+    assert m.closure is None and any("internal walls" in r for r in m.repairs)
+    assert len(m.faces) == len(sphere.faces) and m.volume == pytest.approx(sphere.volume, rel=1e-9)
+    assert {tuple(sorted(f)) for f in np.round(m.vertices[m.faces], 9).reshape(-1, 9).tolist()} == \
+        {tuple(sorted(f)) for f in np.round(sphere.vertices[sphere.faces], 9).reshape(-1, 9).tolist()}
+
+
+def test_a_lab_export_of_glued_shells_goes_through_with_default_flags(tmp_path):
+    """The bundled maxilla exported as crowns glued onto the rest (shared edges and faces): the
+    pair loads with no flags, says so, and keeps the maxilla's surface."""
+    from mjist.jaw import BUNDLED
+    from mjist.jaw.pair import load_pair
+
+    mx = trimesh.load(BUNDLED / "maxilla.obj", process=False, force="mesh")
+    glued, _ = _glued(mx)
+    folder = tmp_path / "lab"
+    folder.mkdir()
+    glued.export(folder / "Case7_UpperJaw.obj")
+    trimesh.load(BUNDLED / "mandible.obj", process=False, force="mesh").export(folder / "Case7_LowerJaw.obj")
+    a, _, info = load_pair(folder, register=False)
+    assert any("internal walls where closed shells met" in n for n in info["notes"]), info["notes"]
+    assert a.closure is None and len(a.faces) == len(mx.faces)
+    assert a.volume == pytest.approx(mx.volume, rel=1e-6)
