@@ -164,6 +164,18 @@ def _cmd_render(args) -> int:
 
 
 def _cmd_view(args) -> int:
+    from pathlib import Path
+
+    target = Path(args.scene)
+    if target.is_dir() or target.suffix == ".html":  # an output folder (or its page): its 3D report
+        from . import report
+
+        def show():
+            path, opened = report.show(target, rebuild=args.rebuild)
+            print(f"report        {path}" + ("" if opened else " (no display here: open it in a browser)"))
+            return 0
+
+        return _user_errors("view", show)
     from .mujoco import view
 
     try:
@@ -232,7 +244,7 @@ def _cmd_cohort(args) -> int:
                   f"occlusion; median {d['median_max_mm']:.3f} mm, worst {d['worst_max_mm']:.3f} mm / {d['worst_rotation_deg']:.3f}°")
         for pid in s["failed_patients"]:
             print(f"failed        {pid} (see cohort.csv and patients/{pid}/result.json)")
-        print(f"written       {s['csv']}" + (f", {s['figure']}" if s["figure"] else ""))
+        print(f"written       {s['csv']}" + (f", {s['figure']}" if s["figure"] else "") + f", {s['page']}")
         return 0 if not s["failed"] else 1
 
     return _user_errors("cohort", go)
@@ -318,8 +330,10 @@ def _add_render(sub) -> None:
 
 
 def _add_view(sub) -> None:
-    v = sub.add_parser("view", help="open MuJoCo's viewer with IST contacts, contact normals and tree spheres")
-    v.add_argument("scene", nargs="?", default=str(MODELS / "jaw_closure.xml"))
+    v = sub.add_parser("view", help="open MuJoCo's viewer with IST contacts (a scene), or an output folder's 3D report.html")
+    v.add_argument("scene", nargs="?", default=str(MODELS / "jaw_closure.xml"),
+                   help="a scene (MJCF), or the output folder of mjist occlusion / wafer / demo --data / cohort")
+    v.add_argument("--rebuild", action="store_true", help="write the output folder's report.html again from its files")
     v.add_argument("--spheres", type=int, default=None, metavar="DEPTH", help="draw the tree spheres at this depth")
     v.add_argument("--key", help="start from this keyframe (e.g. open)")
     v.add_argument("--ctrl", type=float, default=None, help="set every actuator's control (1 closes the jaw)")

@@ -169,10 +169,13 @@ def _run(patients: list[Patient], out: Path, cfg: dict, backend, retry_failed: b
     rows = [results[p.id] for p in patients]
     csv_path = report.write_csv(rows, out / "cohort.csv")
     fig = report.figure(rows, out / "cohort.png", stages.TARGET_MM)
+    from ..report import write_cohort
+
+    page = str(write_cohort(out))
     failed = [r["patient"] for r in rows if r["status"] != "ok"]
     summary = {"patients": len(patients), "done": len(rows) - len(failed), "failed": len(failed), "failed_patients": failed,
                "skipped": skipped, "ran": ran, "seconds": time.perf_counter() - t0, "run_seconds": time.perf_counter() - t_run,
-               "csv": csv_path, "figure": fig, "backend": backend.name, "slots": backend.slots}
+               "csv": csv_path, "figure": fig, "page": page, "backend": backend.name, "slots": backend.slots}
     designed = [r["row"] for r in rows if r["status"] == "ok" and "within_target" in r.get("row", {})]
     if designed:
         summary["design"] = {"patients": len(designed), "within_target": sum(r["within_target"] == "yes" for r in designed),

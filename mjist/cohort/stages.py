@@ -163,6 +163,9 @@ def search(patient: Patient, prep: dict, tree_maxilla: dict, tree_mandible: dict
             cmap = None
             if res["candidates"]:
                 cmap, _ = occlusion.write_contact_map(res, pdir)
+                from .. import report
+
+                report.build_or_say(pdir)  # the patient's report.html (cohort.html links it)
             t3 = time.perf_counter()
         finally:
             res["_handle"].detach()

@@ -181,6 +181,7 @@ def main(scene=None, data=None, native=False, seconds=1.0, out="out/demo", pictu
     print(f"scene         {scene} ready in {time.perf_counter() - t:.1f} s")
     res = run_closure(model, seconds=seconds, handle=handle)
     d = res.pop("_data")
+    res["scene"], res["final_qpos"] = str(scene.resolve()), d.qpos.tolist()  # where it came to rest (the report reads it)
     meta = scene.parent / "pair.json"
     if (data is not None or (pair or {}).get("maxilla")) and meta.exists():  # the hinge the scene was made with, and how sure it is
         j = json.loads(meta.read_text())
@@ -196,4 +197,8 @@ def main(scene=None, data=None, native=False, seconds=1.0, out="out/demo", pictu
             print(f"picture       skipped ({type(exc).__name__}: {exc}); set MUJOCO_GL=egl or osmesa")
     if handle is not None:
         handle.detach()
+    if data is not None or (pair or {}).get("maxilla"):
+        from .. import report
+
+        print(f"written       {report.build_or_say(out)}")
     return 0

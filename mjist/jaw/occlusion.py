@@ -632,8 +632,12 @@ def main(scene=None, data=None, starts=64, translation=None, rotation_deg=None, 
                       f"exact check on {ck.get('sampled', 0)} vertices: {ck.get('above_upper', 0)} above the certified upper "
                       f"bound, {ck.get('below_lower_outside', 0)} non-penetrating below the lower bound, estimate within "
                       f"{ck.get('max_error_of_estimate_mm', 0):.3f} mm")
+        from .. import report
+
+        written.append(report.build_or_say(out))
         for f in written:
             print(f"written       {f}")
     finally:
         res["_handle"].detach()
     return 0
+

@@ -266,6 +266,8 @@ def main(folder=None, output="out/wafer/wafer.stl", progress=True, **kwargs) -> 
               f"{h['seated_drift_mm']:.3f} mm / {h['seated_rotation_deg']:.2f}° from the plan; {h['push_n']:g} N pushes: "
               f"{pushes} (limits {waferproof.HOLD_MM} mm / {waferproof.HOLD_DEG}°)")
     print(f"time          {res['timings']['total_s']:.1f} s")
-    for f in res["files"]:
+    from .. import report
+
+    for f in res["files"] + [report.build_or_say(Path(res["wafer"]).parent)]:
         print(f"written       {f}")
     return 0 if res["ok"] else 2
