@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import coal
 import numpy as np
-import trimesh
 from scipy.spatial.transform import Rotation
 
 
@@ -80,10 +79,9 @@ def geom_faces(model, geom: str) -> np.ndarray:
 
 def near_vertices(V, other, reach: float, every: int = 1) -> np.ndarray:
     """Indices of the vertices ``V[::every]`` within ``reach`` of the surface ``other`` ``(V, F)``
-    (trimesh's closest points), as indices into ``V``."""
+    (coal's exact point distances), as indices into ``V``."""
     idx = np.arange(0, len(V), every)
-    d = np.abs(trimesh.proximity.signed_distance(trimesh.Trimesh(*other, process=False), V[idx]))
-    return idx[d < reach]
+    return idx[point_distances(np.asarray(V)[idx], other) < reach]
 
 
 def largest_shift(A, B) -> float:
