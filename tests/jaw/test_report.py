@@ -191,3 +191,22 @@ def test_demo_with_data_writes_a_closure_report(tmp_path, cache, monkeypatch):
     assert demo.main(data=folder, seconds=0.3, out=out, picture=False, progress=False) == 0
     page = out / "report.html"
     check_page(page, tmp_path, (0, 2))  # closed, then opened
+
+
+@pytest.mark.slow  # a whole default search on a real pair
+@pytest.mark.shared
+@pytest.mark.parametrize("pair", ["orthocast", "jaw"])
+def test_real_pairs_get_a_report_that_draws(pair, tmp_path, cache, monkeypatch):
+    """The shared casts and CBCT pair searched with default settings: their reports draw both
+    arches and the map, the views differ, nothing is fetched."""
+    from conftest import shared_path
+
+    monkeypatch.setenv("MJIST_CACHE", cache)
+    out = tmp_path / pair
+    assert occlusion.main(data=shared_path(pair), out=str(out), progress=False, picture=False) == 0
+    n = len(json.loads((out / "occlusion.json").read_text())["candidates"])
+    a, _ = check_page(out / "report.html", tmp_path, (0, n))  # the best, then the arches opened
+    assert _legend_on_screen(a)
+    if n > 1:  # the runner-up: the mandible moved by its offset (CBCT: 0.8 mm, 0.3 % of the plot's pixels)
+        b, _ = shoot(out / "report.html", 1, tmp_path, "runner_up")
+        assert (np.abs(_plot(a) - _plot(b)).sum(axis=2) > 60).mean() > 5e-4
