@@ -105,8 +105,9 @@ def _scene_path(out_dir: Path, recorded: str) -> Path:
 
 
 def _scene_geoms(scene: Path, qpos) -> dict:
-    """World vertices (mm) and faces of the scene's maxilla and mandible mesh geoms at ``qpos``
-    (MuJoCo's own kinematics; the scene is loaded as plain MuJoCo, nothing attached)."""
+    """World vertices (mm), faces and 4x4 pose (mm) of the scene's maxilla and mandible mesh
+    geoms at ``qpos`` (MuJoCo's own kinematics; the scene is loaded as plain MuJoCo, nothing
+    attached), and the model."""
     import mujoco
 
     m = mujoco.MjModel.from_xml_path(str(scene))
@@ -119,7 +120,9 @@ def _scene_geoms(scene: Path, qpos) -> dict:
         k = int(m.geom_dataid[g])
         V = m.mesh_vert[m.mesh_vertadr[k]:m.mesh_vertadr[k] + m.mesh_vertnum[k]].astype(float)
         F = m.mesh_face[m.mesh_faceadr[k]:m.mesh_faceadr[k] + m.mesh_facenum[k]].astype(np.int64)
-        out[name] = (1e3 * (V @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g]), F)
+        P = np.eye(4)
+        P[:3, :3], P[:3, 3] = d.geom_xmat[g].reshape(3, 3), 1e3 * d.geom_xpos[g]
+        out[name] = (V @ (1e3 * P[:3, :3]).T + P[:3, 3], F, P)
     return out, m
 
 
@@ -187,7 +190,7 @@ def _occlusion(out_dir: Path) -> Report:
                 bands[n] = _bands_from_colours(np.asarray(ply.visual.vertex_colors))
     layers = []
     for n, colour in (("maxilla", IVORY), ("mandible", BLUE)):
-        V, F, b = display_mesh(*geoms[n], bands.get(n))
+        V, F, b = display_mesh(*geoms[n][:2], bands.get(n))
         layers.append(Layer(n, V, F, colour, b))
     Pb = _pose(best["pos"], best["quat"])
     views = []
@@ -299,15 +302,14 @@ def _closure(out_dir: Path) -> Report:
                          "rerun mjist demo --data to get a report")
     scene = _scene_path(out_dir, res["scene"])
     geoms, m = _scene_geoms(scene, np.asarray(res["final_qpos"]))
-    layers = [Layer(n, *display_mesh(*geoms[n])[:2], c) for n, c in (("maxilla", IVORY), ("mandible", BLUE))]
+    layers = [Layer(n, *display_mesh(*geoms[n][:2])[:2], c) for n, c in (("maxilla", IVORY), ("mandible", BLUE))]
     views = [View("closed", note=f"after {res['steps']} steps of {res['timestep'] * 1e3:g} ms")]
     import mujoco
 
     k = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "occlusion")
     if k >= 0:
         ref, _ = _scene_geoms(scene, m.key_qpos[k])
-        Vc, Vr = geoms["mandible"][0], ref["mandible"][0]
-        T = _rigid(Vc, Vr)
+        T = ref["mandible"][2] @ np.linalg.inv(geoms["mandible"][2])  # the mandible from rest to the keyframe
         views.append(View("reference occlusion", {"mandible": T}, note="the pair's given occlusion (keyframe)"))
     views.append(View("opened", _open_book({L.name: (L.vertices, L.faces) for L in layers})))
     keys = ("steps", "step_us_median_closed", "final_contacts", "final_hinge_deg", "settled", "true_distance_mm",
@@ -317,13 +319,3 @@ def _closure(out_dir: Path) -> Report:
                f"coal's distance at rest {res['true_distance_mm']:.4f} mm (ε {res.get('error_bound_mm') or 0:.2f} mm)"]
     return Report(f"Jaw closure: {out_dir.name}", "closure", summary, layers, views, [("Closure", ["figure", "value"], rows)])
 
-
-def _rigid(A, B) -> np.ndarray:
-    """The 4x4 taking point set ``A`` onto its rigid copy ``B`` (Kabsch)."""
-    a, b = A.mean(axis=0), B.mean(axis=0)
-    U, _, Wt = np.linalg.svd((A - a).T @ (B - b))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Wt.T @ U.T))])
-    R = Wt.T @ D @ U.T
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, b - R @ a
-    return T
