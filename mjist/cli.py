@@ -252,9 +252,9 @@ def _cmd_cohort(args) -> int:
 
 def _cmd_wafer(args) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from .jaw import waferjob
+    from .jaw import wafer
 
-    return _user_errors("wafer", lambda: waferjob.main(
+    return _user_errors("wafer", lambda: wafer.main(
         args.folder, output=args.output, pose=args.pose, search=args.search, opening_deg=args.opening,
         clearance_mm=args.clearance, thickness_mm=args.thickness, pair=_pair_options(args), hold=not args.no_hold,
         picture=not args.no_picture, starts=args.starts, seed=args.seed, threads=args.threads, progress=not args.quiet),

@@ -10,7 +10,7 @@ Variants (the shared CBCT pair, ``../shared/data/jaw``, stored in occlusion, as 
 * ``dense``: the stored pair refined (one Loop, one midpoint subdivision) to 335-345 k vertices
   per arch, the size of a dense intraoral scan; its occlusion is its own first touch.
 
-Each runs ``waferjob.make(FOLDER, search=True)`` (the occlusion search with default settings,
+Each runs ``wafer.make(FOLDER, search=True)`` (the occlusion search with default settings,
 then the wafer and its three proofs) twice: first with an empty tree cache (what a user's
 first run costs), then with the trees cached. Per run: the time of each step, the search's
 error against the stored occlusion (largest tooth-point shift and rotation), the opening, the
@@ -103,7 +103,7 @@ def main(argv=None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from mjist.jaw import waferjob
+    from mjist.jaw import wafer
 
     folders = {"bundled": None}
     names = args.variants.split(",")
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
         shutil.rmtree(cache, ignore_errors=True)
         for run in range(2):
             t0 = time.perf_counter()
-            res = waferjob.make(folders[name], output=out / name / "wafer.stl", search=True, picture=run == 1,
+            res = wafer.make(folders[name], output=out / name / "wafer.stl", search=True, picture=run == 1,
                                 progress=False, cache_dir=str(cache))
             rows[name].append(_summary(res, time.perf_counter() - t0, cached=run == 1))
             (out / name / "rows.json").write_text(json.dumps(rows[name], indent=1))

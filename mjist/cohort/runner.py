@@ -82,7 +82,7 @@ def run(input=None, out="out/cohort", *, synthetic_n: int = 0, seed: int = 0, sp
     **settings
         ``max_error`` (m), ``starts``, ``seconds``, ``seed`` of the search, ``threads`` per search,
         ``picture``, ``cache`` (the tree cache folder; on a cluster, a shared one), ``wafer`` (make and
-        prove a surgical wafer at each best occlusion, ``jaw.waferjob``).
+        prove a surgical wafer at each best occlusion, ``jaw.wafer``).
 
     Returns
     -------

@@ -176,19 +176,19 @@ def search(patient: Patient, prep: dict, tree_maxilla: dict, tree_mandible: dict
 
 
 def wafer(patient: Patient, prep: dict, res: dict, out_dir: str, settings: dict) -> dict:
-    """A surgical wafer at the patient's best occlusion (``jaw.waferjob``: made, proved, written
+    """A surgical wafer at the patient's best occlusion (``jaw.wafer``: made, proved, written
     as ``wafer.stl``/``.json``/``.png`` in the patient's folder); its figures join the row. A
     wafer whose proofs fail is a figure of the row (``wafer_ok``), not an error."""
     if res["status"] != "ok":
         return res
     t0 = time.perf_counter()
     try:
-        from ..jaw import waferjob
+        from ..jaw import wafer
 
         pdir = patient_dir(out_dir, patient.id)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            w = waferjob.make(scene=prep["scene"], pose=pdir / "occlusion.json", output=pdir / "wafer.stl",
+            w = wafer.make(scene=prep["scene"], pose=pdir / "occlusion.json", output=pdir / "wafer.stl",
                               picture=settings["picture"], progress=False, cache_dir=settings.get("cache"))
     except Exception as exc:
         f = _failure("wafer", exc)

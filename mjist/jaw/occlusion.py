@@ -33,7 +33,7 @@ from . import pair as jawmod
 from . import ranking
 from .exact import near_faces
 from .ranking import Candidate, shift_mm
-from .scenepair import JAW_TO_WORLD, UP, ScenePair, file_transform, resolve
+from .scenepair import JAW_TO_WORLD, UP, ScenePair, apply_pose, file_transform, resolve
 from .scenes import pair_scene
 
 SCENE = jawmod.BUNDLED / "occlusion_search.xml"
@@ -140,7 +140,6 @@ def _near_faces(pair: ScenePair, P, hinge, reach: float):
     """coal BVHs of the only faces that can meet while the mandible, at ``P``, turns by at most
     ``reach`` (rad) about the hinge (``exact.near_faces`` with that turn's largest move, its
     farthest vertex's arc), or None when that keeps most faces anyway."""
-    from .wafer import apply_pose
 
     (Vx, Fx), (Vd, Fd) = pair.maxilla, pair.mandible
     Wd = apply_pose(P, Vd)

@@ -34,6 +34,11 @@ def file_maps(meta: dict) -> tuple[np.ndarray, np.ndarray, float]:
     return W @ Sx, W @ np.asarray(meta["mandible_pose"], float) @ Sd, sx
 
 
+def apply_pose(T, V) -> np.ndarray:
+    """The points ``V (n, 3)`` moved by the 4x4 pose ``T``."""
+    return np.asarray(V, float) @ T[:3, :3].T + T[:3, 3]
+
+
 def file_transform(meta: dict, pose, reference) -> np.ndarray:
     """The mandible file's pose in the maxilla file's frame and units (4x4) when the mandible geom
     stands at the world pose ``pose`` instead of its ``reference`` (``pair.json`` as ``meta``)."""

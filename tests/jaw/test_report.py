@@ -166,10 +166,10 @@ def test_the_cohort_page_links_each_patient_failures_first(tmp_path):
 
 @pytest.mark.slow  # a wafer made and proved (without the hold test)
 def test_the_wafer_report_draws_the_wafer_between_the_arches(tmp_path, cache):
-    from mjist.jaw import waferjob
+    from mjist.jaw import wafer
 
     out = tmp_path / "wafer" / "wafer.stl"
-    res = waferjob.make(None, output=out, picture=False, progress=False, cache_dir=cache, hold=False)
+    res = wafer.make(None, output=out, picture=False, progress=False, cache_dir=cache, hold=False)
     page = report.build(out.parent)
     a, b = check_page(page, tmp_path, (0, 1))  # seated, then the wafer alone
     p = _plot(b)

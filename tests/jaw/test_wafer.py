@@ -15,8 +15,10 @@ import pytest
 import trimesh
 from conftest import winding_numbers
 
-from mjist.jaw import BUNDLED, waferjob, waferproof
+from mjist.jaw import BUNDLED
 from mjist.jaw.exact import coal_bvh
+from mjist.jaw.wafer import holding as hold
+from mjist.jaw.wafer import job, seating
 
 CLEARANCE, THICKNESS = 0.1, 1.5  # mm, the defaults
 
@@ -86,7 +88,7 @@ def _check_seating(maxilla, mandible, wafer, up, clearance):
     for arch, facing in ((maxilla, -up), (mandible, up)):
         P, d = _tips(arch, wafer, facing, reach)
         assert len(P) >= 6, f"only {len(P)} cusp tips over the wafer"
-        assert d.min() > 0.0 and d.max() <= clearance + waferproof.TIP_SLACK_MM, d.max()
+        assert d.min() > 0.0 and d.max() <= clearance + seating.TIP_SLACK_MM, d.max()
         assert np.ptp(P @ up) > 10 * clearance  # the tips' heights differ by over a millimetre
 
 
@@ -101,8 +103,8 @@ def _hold(files, mandible_transform, scale, up, forward, left, cache, whole_mand
         body = f'mass="0" density="0"/>\n      <inertial pos="{c[0]} {c[1]} {c[2]}" mass="0.11" diaginertia="8e-5 1.6e-4 1.3e-4"'
 
     xml = f"""<mujoco>
-  <option timestep="{waferproof.TIMESTEP}" gravity="0 0 0"/>
-  <default><geom solref="{waferproof.SOLREF[0]} {waferproof.SOLREF[1]}" friction="0.1"/></default>
+  <option timestep="{hold.TIMESTEP}" gravity="0 0 0"/>
+  <default><geom solref="{hold.SOLREF[0]} {hold.SOLREF[1]}" friction="0.1"/></default>
   <asset>
     <mesh name="maxilla" file="{files['maxilla']}" scale="{scale} {scale} {scale}"/>
     <mesh name="wafer" file="{files['wafer']}" scale="{scale} {scale} {scale}"/>
@@ -121,8 +123,8 @@ def _hold(files, mandible_transform, scale, up, forward, left, cache, whole_mand
     import mjist
 
     model = mujoco.MjModel.from_xml_string(xml)
-    handle = mjist.attach(model, narrowphase="surface", contacts=waferproof.CONTACTS, max_error=3e-4,
-                          surface_groups=waferproof.SURFACE_GROUPS, cache_dir=cache)
+    handle = mjist.attach(model, narrowphase="surface", contacts=hold.CONTACTS, max_error=3e-4,
+                          surface_groups=hold.SURFACE_GROUPS, cache_dir=cache)
     try:
         d = mujoco.MjData(model)
         T = np.asarray(mandible_transform, float)
@@ -167,7 +169,7 @@ def _hold(files, mandible_transform, scale, up, forward, left, cache, whole_mand
 @pytest.fixture(scope="module")
 def bundled(tmp_path_factory, cache):
     out = tmp_path_factory.mktemp("wafer") / "wafer.stl"
-    res = waferjob.make(None, output=out, picture=False, progress=False, cache_dir=cache)
+    res = job.make(None, output=out, picture=False, progress=False, cache_dir=cache)
     return out, res
 
 
@@ -188,7 +190,7 @@ def test_bundled_wafer_prints_seats_and_holds(bundled, cache):
     _read(out).export(obj)
     drift = _hold({"maxilla": BUNDLED / "maxilla.obj", "mandible": BUNDLED / "mandible.obj", "wafer": obj},
                   meta["mandible_transform"], 1.0, up, np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), cache)
-    assert 0.5 * CLEARANCE <= drift <= waferproof.HOLD_MM, drift  # closes through the clearance, then holds
+    assert 0.5 * CLEARANCE <= drift <= hold.HOLD_MM, drift  # closes through the clearance, then holds
 
 
 def _slab(centre):
@@ -201,24 +203,24 @@ def _slab(centre):
 
 
 def test_too_thin_an_opening_is_refused_with_the_fix():
-    from mjist.jaw import wafer
+    from mjist.jaw.wafer.shape import shape
 
     upper = _slab((0.0, 0.0055, 0.0))  # 0.5 mm above the lower one
     lower = _slab((0.0, -0.005, 0.0))
     args = ((upper.vertices, upper.faces), (lower.vertices, lower.faces), (0, 1, 0), (0, 0, 1), (0, 0.03, -0.08), (1, 0, 0))
     with pytest.raises(ValueError, match="leave --opening out"):
-        wafer.shape(*args, opening_deg=0.2)
-    w = wafer.shape(*args)  # the smallest opening that fits: the faces a thickness apart, flat
+        shape(*args, opening_deg=0.2)
+    w = shape(*args)  # the smallest opening that fits: the faces a thickness apart, flat
     assert w.opening_source == "smallest" and w.opening_deg > 0.2
 
 
 def test_arches_apart_are_refused_with_the_fix():
-    from mjist.jaw import wafer
+    from mjist.jaw.wafer.shape import shape
 
     box = _slab((0.0, 0.0, 0.0))
     low = _slab((0.0, -0.04, 0.0))
     with pytest.raises(ValueError, match="apart at the given occlusion.*--search"):
-        wafer.shape((box.vertices, box.faces), (low.vertices, low.faces), (0, 1, 0), (0, 0, 1), (0, 0.05, -0.05), (1, 0, 0))
+        shape((box.vertices, box.faces), (low.vertices, low.faces), (0, 1, 0), (0, 0, 1), (0, 0.05, -0.05), (1, 0, 0))
 
 
 def test_a_pose_file_of_another_pair_is_refused(tmp_path):
@@ -227,10 +229,10 @@ def test_a_pose_file_of_another_pair_is_refused(tmp_path):
     f.write_text(json.dumps({"reference_pos": [0.001, 0, 0], "hinge": [0.0, 0.03, -0.04],
                              "candidates": [{"pos": [0, 0, 0], "quat": [1, 0, 0, 0]}]}))
     with pytest.raises(ValueError, match="another pair"):
-        waferjob._candidate_pose(jp, f)
+        job._candidate_pose(jp, f)
     f.write_text(json.dumps({"reference_pos": [0, 0, 0], "hinge": [0, 0.03, -0.04], "candidates": []}))
     with pytest.raises(ValueError, match="no candidates"):
-        waferjob._candidate_pose(jp, f)
+        job._candidate_pose(jp, f)
 
 
 def test_cli_names_open_meshes_and_conflicting_sources(tmp_path, capsys):
@@ -252,7 +254,7 @@ def test_real_teeth_in_mm_z_get_a_wafer_that_prints_seats_and_holds(teeth_only, 
     with +z up, lies between the files as they are, prints, seats, and holds the mandible in a
     scene made here of the three files."""
     out = tmp_path / "wafer.stl"
-    waferjob.make(teeth_only, output=out, hold=False, picture=False, progress=False, cache_dir=cache)  # held below
+    job.make(teeth_only, output=out, hold=False, picture=False, progress=False, cache_dir=cache)  # held below
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["units"] == "mm"
     up = np.array([0.0, 0.0, 1.0])
@@ -272,4 +274,4 @@ def test_real_teeth_in_mm_z_get_a_wafer_that_prints_seats_and_holds(teeth_only, 
     drift = _hold({"maxilla": teeth_only / "maxilla.stl", "mandible": teeth_only / "mandible.stl", "wafer": obj},
                   meta["mandible_transform"], 1e-3, up, np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0]), cache,
                   whole_mandible=True)
-    assert 0.5 * CLEARANCE <= drift <= waferproof.HOLD_MM, drift  # closes through the clearance, then holds
+    assert 0.5 * CLEARANCE <= drift <= hold.HOLD_MM, drift  # closes through the clearance, then holds

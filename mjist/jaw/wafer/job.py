@@ -22,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from . import wafer as shape_mod
-from . import waferproof
-from .scenepair import file_maps
-from .wafer import apply_pose
+from ..scenepair import apply_pose, file_maps
+from . import outline
+from .holding import HOLD_DEG, HOLD_MM, holding
+from .printable import printable
+from .seating import PENETRATION_MM, TIP_SLACK_MM, seating
+from .shape import shape
 
 
 def _candidate_pose(jp, pose_file) -> tuple[np.ndarray, str]:
@@ -79,11 +81,8 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
         What ``wafer.json`` holds: inputs, opening, ``mandible_transform``, volume, bounding
         box, minimum thickness, the three proofs, timings and the files written.
     """
-
-    from ..mujoco.attach import load_model
-    from .occlusion import search as occlusion_search
-    from .scenepair import HINGE_AXIS, resolve
-    from .scenes import pair_scene
+    from ..scenepair import HINGE_AXIS
+    from ..scenes import pair_scene
 
     if pose is not None and search:
         raise ValueError("pass either --pose occlusion.json or --search, not both")
@@ -101,6 +100,46 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
     scene = Path(scene)
     meta = json.loads((scene.parent / "pair.json").read_text())
     timings = {"scene_s": time.perf_counter() - t0}
+    jp, Pc, source, res = _occlusion(scene, meta, pose, search, starts, seed, threads, progress, cache_dir, timings)
+    fx = jp.frames["maxilla"]
+    t2 = time.perf_counter()
+    (Vx, Fx), (Vd, Fd) = jp.maxilla, jp.mandible
+    w = shape((apply_pose(jp.maxilla_pose, Vx), Fx), (apply_pose(Pc, Vd), Fd), fx.up, fx.anterior, jp.hinge, HINGE_AXIS,
+              clearance=clearance_mm * 1e-3, thickness=thickness_mm * 1e-3, opening_deg=opening_deg)
+    timings["shape_s"] = time.perf_counter() - t2
+    X = w.mandible_pose @ Pc @ np.linalg.inv(jp.reference)  # world: reference occlusion -> seated on the wafer
+    proofs, world_file = _proofs(w, X, jp, meta, work, timings)
+    planned = jp.body(X @ jp.reference)  # the mandible body seated on the wafer
+    if hold:
+        t5 = time.perf_counter()
+        centre = 0.5 * (w.vertices.min(axis=0) + w.vertices.max(axis=0))
+        proofs["holding"] = holding(scene, world_file, planned, w.cusps["mandible"], centre,
+                                    {"up": fx.up, "forward": fx.anterior, "left": fx.left},
+                                    cache_dir=cache_dir, progress=progress, threads=threads)
+        timings["holding_s"] = time.perf_counter() - t5
+    out = _record(w, X, meta, output, source, proofs, res, clearance_mm, thickness_mm, opening_deg)
+    files = [str(output)]
+    if picture:
+        from .picture import render
+
+        try:
+            files.append(render(scene, world_file, planned, output.with_suffix(".png")))
+        except Exception as exc:  # no GL: the proofs still stand
+            print(f"picture skipped ({type(exc).__name__}: {exc}); set MUJOCO_GL=egl or osmesa")
+    timings["total_s"] = time.perf_counter() - t0
+    out["timings"] = timings
+    out["files"] = files + [str(output.with_suffix(".json"))]
+    output.with_suffix(".json").write_text(json.dumps(out, indent=1))
+    return out
+
+
+def _occlusion(scene, meta, pose, search, starts, seed, threads, progress, cache_dir, timings):
+    """The resolved pair, the mandible geom's world pose at the occlusion the wafer is made for,
+    where it came from, and the search's result (``--search``) or None."""
+    from ...mujoco.attach import load_model
+    from ..occlusion import search as occlusion_search
+    from ..scenepair import resolve
+
     res = None
     t1 = time.perf_counter()
     if search:
@@ -115,54 +154,44 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
         if not res["candidates"]:
             raise ValueError("the search found no occlusion (no start settled): check the pair (mjist occlusion) or pass --pose")
         best = res["candidates"][0]
-        Pc, source = jp.pose(best["pos"], best["quat"]), "search (candidate #1)"
-    elif pose is not None:
-        Pc, source = _candidate_pose(jp, pose)
-    else:
-        Pc, source = jp.reference, f"the pair's occlusion ({meta['occlusion_source']})"
+        return jp, jp.pose(best["pos"], best["quat"]), "search (candidate #1)", res
+    if pose is not None:
+        return (jp, *_candidate_pose(jp, pose), None)
+    return jp, jp.reference, f"the pair's occlusion ({meta['occlusion_source']})", None
 
-    Vx, Fx = jp.maxilla
-    Vd, Fd = jp.mandible
-    Wx = apply_pose(jp.maxilla_pose, Vx)
-    Wd = apply_pose(Pc, Vd)
-    fx = jp.frames["maxilla"]
-    t2 = time.perf_counter()
-    w = shape_mod.shape((Wx, Fx), (Wd, Fd), fx.up, fx.anterior, jp.hinge, HINGE_AXIS, clearance=clearance_mm * 1e-3,
-                        thickness=thickness_mm * 1e-3, opening_deg=opening_deg)
-    timings["shape_s"] = time.perf_counter() - t2
-    X = w.mandible_pose @ Pc @ np.linalg.inv(jp.reference)  # world: reference occlusion -> seated on the wafer
+
+def _proofs(w, X, jp, meta, work, timings) -> tuple[dict, Path]:
+    """The printable and seating proofs, on the pair's files as stored (seated by ``X``), and
+    the wafer written in the world frame for the holding proof."""
+    import trimesh
+
+    from ...geometry.mesh import read_surface
+
+    t3 = time.perf_counter()
+    proofs = {"printable": printable(w.vertices, w.faces, w.thickness, jp.frames["maxilla"].up)}
+    timings["printable_s"] = time.perf_counter() - t3
+    t4 = time.perf_counter()
     A_x, A_d, sx = file_maps(meta)
     to_file = np.linalg.inv(A_x)
     M = to_file @ X @ A_d
-    V_file = apply_pose(to_file, w.vertices)
-
-    # proofs
-    t3 = time.perf_counter()
-    proofs = {"printable": waferproof.printable(w.vertices, w.faces, w.thickness, fx.up)}
-    timings["printable_s"] = time.perf_counter() - t3
-    t4 = time.perf_counter()
-    from ..geometry.mesh import read_surface
-
     stored = {k: read_surface(meta_paths(meta)[k]) for k in ("maxilla", "mandible")}
     mx = (np.asarray(stored["maxilla"].vertices) * sx, stored["maxilla"].faces)
     md = (apply_pose(M, stored["mandible"].vertices) * sx, stored["mandible"].faces)
     tips = {k: apply_pose(to_file, v) * sx for k, v in w.cusps.items()}
-    proofs["seating"] = waferproof.seating(mx, md, (V_file * sx, w.faces), w.clearance, tips)
+    proofs["seating"] = seating(mx, md, (apply_pose(to_file, w.vertices) * sx, w.faces), w.clearance, tips)
     timings["seating_s"] = time.perf_counter() - t4
-
-    import trimesh
-
     world_file = work / "wafer.world.obj"
     trimesh.Trimesh(w.vertices, w.faces, process=False).export(world_file, digits=17)
-    planned = jp.body(X @ jp.reference)  # the mandible body seated on the wafer
-    if hold:
-        t5 = time.perf_counter()
-        centre = 0.5 * (w.vertices.min(axis=0) + w.vertices.max(axis=0))
-        proofs["holding"] = waferproof.holding(scene, world_file, planned, w.cusps["mandible"], centre,
-                                               {"up": fx.up, "forward": fx.anterior, "left": fx.left},
-                                               cache_dir=cache_dir, progress=progress, threads=threads)
-        timings["holding_s"] = time.perf_counter() - t5
+    return proofs, world_file
 
+
+def _record(w, X, meta, output, source, proofs, res, clearance_mm, thickness_mm, opening_deg) -> dict:
+    """``wafer.stl`` written in the maxilla file's frame and units, and what ``wafer.json`` holds of it."""
+    import trimesh
+
+    A_x, A_d, sx = file_maps(meta)
+    to_file = np.linalg.inv(A_x)
+    V_file = apply_pose(to_file, w.vertices)
     os.makedirs(output.parent, exist_ok=True)
     trimesh.Trimesh(V_file, w.faces, process=False).export(output)
     lo, hi = V_file.min(axis=0), V_file.max(axis=0)
@@ -172,9 +201,9 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
         "inputs": {"maxilla": meta_paths(meta)["maxilla"], "mandible": meta_paths(meta)["mandible"],
                    "occlusion": source, "clearance_mm": clearance_mm, "thickness_mm": thickness_mm,
                    "opening": "given" if opening_deg is not None else "smallest", "grid_mm": w.grid * 1e3,
-                   "imprint_mm": shape_mod.IMPRINT * 1e3, "rim_mm": shape_mod.RIM * 1e3},
+                   "imprint_mm": outline.IMPRINT * 1e3, "rim_mm": outline.RIM * 1e3},
         "opening_deg": w.opening_deg, "arch_gap_mm": w.arch_gap * 1e3,
-        "mandible_transform": M.tolist(),
+        "mandible_transform": (to_file @ X @ A_d).tolist(),
         "volume_mm3": proofs["printable"]["volume_mm3"],
         "bounding_box": {"min": lo.tolist(), "max": hi.tolist()},
         "min_thickness_mm": proofs["printable"]["min_thickness_mm"],
@@ -186,59 +215,12 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
         c = res["candidates"][0]
         out["search"] = {"interocclusal_mm": c["interocclusal_mm"], "ambiguous": res["confidence"].get("ambiguous"),
                          "error_vs_reference_mm": c["error"]["max_mm"], "starts": res["starts"]}
-    files = [str(output)]
-    if picture:
-        try:
-            files.append(render(scene, world_file, planned, output.with_suffix(".png")))
-        except Exception as exc:  # no GL: the proofs still stand
-            print(f"picture skipped ({type(exc).__name__}: {exc}); set MUJOCO_GL=egl or osmesa")
-    timings["total_s"] = time.perf_counter() - t0
-    out["timings"] = timings
-    out["files"] = files + [str(output.with_suffix(".json"))]
-    output.with_suffix(".json").write_text(json.dumps(out, indent=1))
     return out
 
 
 def meta_paths(meta: dict) -> dict:
     """The pair's mesh files as the user gave them (``pair.json``)."""
     return meta.get("given") or meta["meshes"]
-
-
-def render(scene, wafer_file, planned, out) -> str:
-    """The wafer on the maxilla from below (occlusal view) and from the side, the mandible
-    faded in the side view at ``planned``, its body's ``(pos, quat)`` seated on the wafer."""
-    import matplotlib
-    import mujoco
-
-    spec = mujoco.MjSpec.from_file(str(scene))
-    spec.add_mesh(name="wafer", file=str(wafer_file))
-    spec.worldbody.add_geom(name="wafer", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="wafer", rgba=[0.35, 0.6, 0.95, 1.0],
-                            contype=0, conaffinity=0)
-    model = spec.compile()
-    d = mujoco.MjData(model)
-    g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "mandible")
-    gw = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "wafer")
-    d.qpos[:3], d.qpos[3:7] = planned
-    mujoco.mj_forward(model, d)
-    centre = d.geom_xpos[gw].copy()
-    views = []
-    r = mujoco.Renderer(model, 600, 700)
-    try:
-        for alpha, az, el in ((0.0, 90.0, 89.0), (0.35, 180.0, 0.0)):
-            model.geom_rgba[g, 3] = alpha
-            cam = mujoco.MjvCamera()
-            cam.lookat[:] = centre
-            cam.distance = 0.13
-            cam.azimuth, cam.elevation = az, el
-            r.update_scene(d, camera=cam)
-            views.append(r.render())
-    finally:
-        r.close()
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    plt.imsave(out, np.concatenate(views, axis=1))
-    return str(out)
 
 
 def main(folder=None, output="out/wafer/wafer.stl", progress=True, **kwargs) -> int:
@@ -255,18 +237,18 @@ def main(folder=None, output="out/wafer/wafer.stl", progress=True, **kwargs) -> 
     for k in ("maxilla", "mandible"):
         s = se[k]
         print(f"seating       {'PASS' if s['ok'] else 'FAIL'} {k}: coal distance {s['coal_distance_mm']:.4f} mm, deepest "
-              f"overlap {s['penetration_mm']:.4f} mm (≤ {waferproof.PENETRATION_MM}), {s['cusp_tips']} cusp tips "
+              f"overlap {s['penetration_mm']:.4f} mm (≤ {PENETRATION_MM}), {s['cusp_tips']} cusp tips "
               f"{s['tip_distance_median_mm']:.3f} mm median / {s['tip_distance_max_mm']:.3f} mm max from the wafer "
-              f"(clearance {res['inputs']['clearance_mm']:g} + {waferproof.TIP_SLACK_MM})")
+              f"(clearance {res['inputs']['clearance_mm']:g} + {TIP_SLACK_MM})")
     if "holding" in p:
         h = p["holding"]
         pushes = ", ".join(f"{r['push']} {r['max_drift_mm']:.3f} mm/{r['max_rotation_deg']:.2f}° (back to "
                            f"{r['after_mm']:.3f} mm)" for r in h["pushes"])
         print(f"holding       {'PASS' if h['ok'] else 'FAIL'}: closed with {h['closing_force_n']:g} N, "
               f"{h['seated_drift_mm']:.3f} mm / {h['seated_rotation_deg']:.2f}° from the plan; {h['push_n']:g} N pushes: "
-              f"{pushes} (limits {waferproof.HOLD_MM} mm / {waferproof.HOLD_DEG}°)")
+              f"{pushes} (limits {HOLD_MM} mm / {HOLD_DEG}°)")
     print(f"time          {res['timings']['total_s']:.1f} s")
-    from .. import report
+    from ... import report
 
     for f in res["files"] + [report.build_or_say(Path(res["wafer"]).parent)]:
         print(f"written       {f}")
