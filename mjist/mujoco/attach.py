@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..geometry import sdfgrid
 from ..query import primitive as cp
-from . import abi, layout
+from . import abi, layout, prewarm
 from .config import (
     DEFAULT_COUPLING,
     DEFAULT_STIFFNESS,
@@ -94,6 +94,7 @@ def attach(model: mujoco.MjModel, *, trees: dict | None = None, cache_dir=None, 
     if len(used) > layout.MAX_GEOMS:
         raise ConfigError(f"{len(used)} IST geoms can meet: at most {layout.MAX_GEOMS} are supported per model "
                           "(use mjist_geoms to pick)")
+    prewarm.start()  # a first run: the collision kernels compile on another core while the trees load
     gap = _load_trees(model, cfg, handle, used, trees, cache_dir, progress)
     slot_of = {g: k for k, g in enumerate(used)}
     arrays, slots = _tree_tables(model, handle, slot_of, cache_dir)

@@ -1095,6 +1095,9 @@ def cfunc_address(t1: int, t2: int) -> int:
     compiled (or loaded from numba's cache) on first use, so a scene pays only for its slots."""
     key = (min(t1, t2), max(t1, t2))
     if key not in _CFUNCS:
+        from . import prewarm
+
+        prewarm.compile_split(COLLISION_TABLE[key], _SIG)  # a first run: its kernels on two cores
         _CFUNCS[key] = cfunc(_SIG, cache=True)(COLLISION_TABLE[key])
     return _CFUNCS[key].address
 

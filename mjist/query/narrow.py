@@ -16,6 +16,7 @@ measured (docs/mujoco.md), not proved.
 """
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 from ..geometry import surface as sf
@@ -75,7 +76,8 @@ def measure(SA, SB, Na, Nb, xf, cand, n, below, eps, geom, sval, tmp, res, sst, 
     from its deepest leaf pair's contact point. The groups closer than ``below`` are compacted to
     the front of ``cand``, ``geom`` (normal at 0:3, point at 9:12, A's frame) and ``sval``; returns
     their count and the count of groups whose surface query failed (those are dropped)."""
-    m = 0
+    # a typed zero: typing the loop's call with a literal 0 first would compile measure_from twice
+    m = np.int64(0)
     failed = 0
     for i in range(n):
         g = geom[i]
