@@ -11,8 +11,8 @@ vertices (``bench_scaling``), MuJoCo step time against native hull / mesh-SDF / 
 folder ``BENCHMARKS.generated.md`` (the exact command, machine, versions, wall time per stage and every stage's table) and
 ``pareto.png``: run time against error for the IST at each ε against coal's exact distance
 (queries) and for each MuJoCo contact mode against the ground-truth occlusion (jaw closure).
-``--quick`` (small sizes, under 5 minutes) is what CI-sized machines can afford; the full
-run states its time. The repository's BENCHMARKS.md is a full run's report (with
+``--quick`` (the stages of ``QUICK``, small sizes, a few minutes; it names what it skips) is
+what CI-sized machines can afford; the full run states its time. The repository's BENCHMARKS.md is a full run's report (with
 ``pareto.png`` as ``docs/pareto.png``): see docs/architecture.md.
 """
 from __future__ import annotations
@@ -45,6 +45,10 @@ STAGES = {
     "stress": ("bench_stress.py", ["--quick"], [], "dir"),
 }
 
+# the stages ``--quick`` runs: the bundled models only, prebuilt trees, a few minutes on a fresh
+# install of a 2-core machine. The others search real pairs, run cohorts or stress runs (tens of
+# minutes); ``--only`` runs any of them with its quick arguments
+QUICK = ("build", "query", "mujoco", "haptic")
 
 # stage -> (section title, what it measures: a paragraph above the stage's table)
 NOTES = {
@@ -200,6 +204,10 @@ def run(quick: bool = False, out="out/bench", only: list[str] | None = None, ech
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
         raise ValueError(f"unknown stage(s) {unknown}: choose from {', '.join(STAGES)}")
+    skipped = [s for s in stages if quick and not only and s not in QUICK]
+    stages = [s for s in stages if s not in skipped]
+    if skipped:
+        echo(f"--quick runs {', '.join(stages)}; skipped (run without --quick, or --only STAGE): {', '.join(skipped)}")
     command = "mjist bench" + (" --quick" if quick else "") + (f" --only {','.join(stages)}" if only else "")
     t_all = time.perf_counter()
     done = {}
@@ -230,6 +238,8 @@ def run(quick: bool = False, out="out/bench", only: list[str] | None = None, ech
     ]
     for st, r in done.items():
         lines.append(f"| {st} | scripts/{STAGES[st][0]} | {r['seconds']:.0f} | {'ok' if r['returncode'] == 0 else 'failed'} |")
+    for st in skipped:
+        lines.append(f"| {st} | scripts/{STAGES[st][0]} | | skipped by --quick |")
     for st, r in done.items():
         script, qargs, fargs = STAGES[st][:3]
         title, note = NOTES.get(st, (st, ""))

@@ -8,7 +8,7 @@ before it loads the trees: a child process compiles ``pair_contacts`` into that 
 meanwhile. When the slot's cfunc is compiled, ``compile_split`` compiles
 ``pair_distance`` and the primitive path in this process and waits for the child; the cfunc then loads the child's
 kernels from the cache instead of compiling them. The compiled code is the same either way; only
-the wall time of a first run changes (BENCHMARKS.md, "First run").
+the wall time of a first run changes (BENCHMARKS.md, "A new user's first run").
 
 Nothing here can fail a run: a child that cannot start, fails or takes longer than
 ``CHILD_TIMEOUT_S`` leaves its kernels to this process, which compiles them as it would have.

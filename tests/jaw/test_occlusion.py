@@ -207,6 +207,12 @@ def test_bench_suite_reports_each_stage_and_a_failing_one(tmp_path, monkeypatch)
     md = (tmp_path / "out" / "BENCHMARKS.generated.md").read_text()
     assert "| ok | scripts/ok.py |" in md and "| bad | scripts/bad.py |" in md and "failed" in md
     assert "| 1 | 2 |" in md and "cores" in md
+    # --quick runs the stages of QUICK and names the others, which do not run
+    monkeypatch.setattr(bench, "QUICK", ("ok",))
+    said = []
+    res = bench.run(quick=True, out=tmp_path / "quick", echo=said.append)
+    assert list(res["stages"]) == ["ok"] and any("skipped" in s and "bad" in s for s in said)
+    assert "| bad | scripts/bad.py | | skipped by --quick |" in (tmp_path / "quick" / "BENCHMARKS.generated.md").read_text()
 
 
 @pytest.mark.slow
