@@ -31,7 +31,7 @@ SCRIPTS = ROOT / "scripts"
 # stage -> (script, extra args for --quick, extra args for the full run, how its outputs are named)
 STAGES = {
     "build": ("bench_build.py", ["--quick"], [], "dir"),
-    "query": ("bench_query.py", ["--quick"], [], "dir"),
+    "query": ("bench_query.py", ["--quick", "--pairs", "bundled"], [], "dir"),
     "paper": ("bench_paper.py", ["--quick"], [], "dir"),
     "scaling": ("bench_scaling.py", ["--quick"], [], "dir"),
     "mujoco": ("bench_mujoco.py", ["--quick", "--pairs", "bundled"], [], "prefix"),
