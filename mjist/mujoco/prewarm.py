@@ -4,13 +4,14 @@ numba compiles under one global lock, so a process compiles one kernel at a time
 body ``hook.collide`` calls two large kernels that share few callees: ``pair_distance`` (distance
 requests) and ``pair_contacts`` (contacts); together they are nearly all of a first run's
 compile. When ``pair_contacts`` is not in numba's on-disk cache, ``attach`` calls ``start``
-before it loads the trees: a child process compiles ``pair_contacts`` into that cache
-meanwhile. When the slot's cfunc is compiled, ``compile_split`` compiles
-``pair_distance`` and the primitive path in this process and waits for the child; the cfunc then loads the child's
+before it loads the trees: a child process compiles ``pair_contacts`` into that cache meanwhile.
+When the slot's cfunc is compiled, ``compile_split`` compiles ``pair_distance`` and the
+primitive path in this process and waits for the child; the cfunc then loads the child's
 kernels from the cache instead of compiling them. The compiled code is the same either way; only
 the wall time of a first run changes (BENCHMARKS.md, "A new user's first run").
 
-Nothing here can fail a run: a child that cannot start, fails or takes longer than
+A process starts at most one child: where numba cannot keep a cache, a second would compile for
+nothing. Nothing here can fail a run: a child that cannot start, fails or takes longer than
 ``CHILD_TIMEOUT_S`` leaves its kernels to this process, which compiles them as it would have.
 """
 from __future__ import annotations
@@ -45,7 +46,7 @@ def cached(py_func, sig) -> bool:
         return False
 
 
-_CHILD: dict = {}  # "process": the running child of ``start``
+_CHILD: dict = {}  # "process": the running child of ``start``; "started": whether one ever ran here
 
 
 def start() -> None:
@@ -53,8 +54,9 @@ def start() -> None:
     ``pair_contacts`` in numba's cache), so it compiles while this process loads trees."""
     from . import hook
 
-    if _CHILD.get("process") is not None or cached(hook.pair_contacts.py_func, CONTACTS_SIG):
+    if _CHILD.get("started") or hook._CFUNCS or cached(hook.pair_contacts.py_func, CONTACTS_SIG):
         return
+    _CHILD["started"] = True
     try:
         _CHILD["process"] = subprocess.Popen([sys.executable, "-c", "from mjist.mujoco import prewarm; prewarm.child()"],
                                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -70,10 +72,10 @@ def compile_split(cfunc_body, cfunc_sig) -> bool:
     rest, and wait for it. True when a child was used."""
     from . import hook
 
-    if _CHILD.get("process") is None:
-        if cached(cfunc_body, cfunc_sig):
-            return False
-        start()
+    if cached(cfunc_body, cfunc_sig):  # the cfunc loads whole: no kernel of its compiles
+        _stop()
+        return False
+    start()
     child = _CHILD.get("process")
     if child is None:
         return False

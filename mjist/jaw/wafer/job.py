@@ -108,7 +108,8 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
               clearance=clearance_mm * 1e-3, thickness=thickness_mm * 1e-3, opening_deg=opening_deg)
     timings["shape_s"] = time.perf_counter() - t2
     X = w.mandible_pose @ Pc @ np.linalg.inv(jp.reference)  # world: reference occlusion -> seated on the wafer
-    proofs, world_file = _proofs(w, X, jp, meta, work, timings)
+    in_file = _FileFrame(meta, X)
+    proofs, world_file = _proofs(w, in_file, jp, meta, work, timings)
     planned = jp.body(X @ jp.reference)  # the mandible body seated on the wafer
     if hold:
         t5 = time.perf_counter()
@@ -117,7 +118,7 @@ def make(folder=None, *, output="out/wafer/wafer.stl", pose=None, search: bool =
                                     {"up": fx.up, "forward": fx.anterior, "left": fx.left},
                                     cache_dir=cache_dir, progress=progress, threads=threads)
         timings["holding_s"] = time.perf_counter() - t5
-    out = _record(w, X, meta, output, source, proofs, res, clearance_mm, thickness_mm, opening_deg)
+    out = _record(w, in_file, meta, output, source, proofs, res, clearance_mm, thickness_mm, opening_deg)
     files = [str(output)]
     if picture:
         from .picture import render
@@ -160,9 +161,23 @@ def _occlusion(scene, meta, pose, search, starts, seed, threads, progress, cache
     return jp, jp.reference, f"the pair's occlusion ({meta['occlusion_source']})", None
 
 
-def _proofs(w, X, jp, meta, work, timings) -> tuple[dict, Path]:
-    """The printable and seating proofs, on the pair's files as stored (seated by ``X``), and
-    the wafer written in the world frame for the holding proof."""
+class _FileFrame:
+    """The maxilla file's frame and units: ``to_file`` (world -> file), the mandible file's seated
+    pose ``M`` there (``X``: world, reference occlusion -> seated), and the file's scale ``sx``."""
+
+    def __init__(self, meta, X):
+        A_x, A_d, self.sx = file_maps(meta)
+        self.to_file = np.linalg.inv(A_x)
+        self.M = self.to_file @ X @ A_d
+
+    def points(self, V) -> np.ndarray:
+        """World points in the maxilla file's frame (its units: ``sx`` turns them back into metres)."""
+        return apply_pose(self.to_file, V)
+
+
+def _proofs(w, f: _FileFrame, jp, meta, work, timings) -> tuple[dict, Path]:
+    """The printable and seating proofs, on the pair's files as stored (the mandible at ``f.M``),
+    and the wafer written in the world frame for the holding proof."""
     import trimesh
 
     from ...geometry.mesh import read_surface
@@ -171,27 +186,24 @@ def _proofs(w, X, jp, meta, work, timings) -> tuple[dict, Path]:
     proofs = {"printable": printable(w.vertices, w.faces, w.thickness, jp.frames["maxilla"].up)}
     timings["printable_s"] = time.perf_counter() - t3
     t4 = time.perf_counter()
-    A_x, A_d, sx = file_maps(meta)
-    to_file = np.linalg.inv(A_x)
-    M = to_file @ X @ A_d
+    sx = f.sx
     stored = {k: read_surface(meta_paths(meta)[k]) for k in ("maxilla", "mandible")}
     mx = (np.asarray(stored["maxilla"].vertices) * sx, stored["maxilla"].faces)
-    md = (apply_pose(M, stored["mandible"].vertices) * sx, stored["mandible"].faces)
-    tips = {k: apply_pose(to_file, v) * sx for k, v in w.cusps.items()}
-    proofs["seating"] = seating(mx, md, (apply_pose(to_file, w.vertices) * sx, w.faces), w.clearance, tips)
+    md = (apply_pose(f.M, stored["mandible"].vertices) * sx, stored["mandible"].faces)
+    tips = {k: f.points(v) * sx for k, v in w.cusps.items()}
+    proofs["seating"] = seating(mx, md, (f.points(w.vertices) * sx, w.faces), w.clearance, tips)
     timings["seating_s"] = time.perf_counter() - t4
     world_file = work / "wafer.world.obj"
     trimesh.Trimesh(w.vertices, w.faces, process=False).export(world_file, digits=17)
     return proofs, world_file
 
 
-def _record(w, X, meta, output, source, proofs, res, clearance_mm, thickness_mm, opening_deg) -> dict:
+def _record(w, f: _FileFrame, meta, output, source, proofs, res, clearance_mm, thickness_mm, opening_deg) -> dict:
     """``wafer.stl`` written in the maxilla file's frame and units, and what ``wafer.json`` holds of it."""
     import trimesh
 
-    A_x, A_d, sx = file_maps(meta)
-    to_file = np.linalg.inv(A_x)
-    V_file = apply_pose(to_file, w.vertices)
+    sx = f.sx
+    V_file = f.points(w.vertices)
     os.makedirs(output.parent, exist_ok=True)
     trimesh.Trimesh(V_file, w.faces, process=False).export(output)
     lo, hi = V_file.min(axis=0), V_file.max(axis=0)
@@ -203,7 +215,7 @@ def _record(w, X, meta, output, source, proofs, res, clearance_mm, thickness_mm,
                    "opening": "given" if opening_deg is not None else "smallest", "grid_mm": w.grid * 1e3,
                    "imprint_mm": outline.IMPRINT * 1e3, "rim_mm": outline.RIM * 1e3},
         "opening_deg": w.opening_deg, "arch_gap_mm": w.arch_gap * 1e3,
-        "mandible_transform": (to_file @ X @ A_d).tolist(),
+        "mandible_transform": f.M.tolist(),
         "volume_mm3": proofs["printable"]["volume_mm3"],
         "bounding_box": {"min": lo.tolist(), "max": hi.tolist()},
         "min_thickness_mm": proofs["printable"]["min_thickness_mm"],

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..scenepair import apply_pose
 from .grid import Grid, basis, dilate, dilate_mask, erode, erode_mask, surface_samples
 from .mesh import closed_mesh
 from .opening import Faces, find
@@ -102,8 +103,6 @@ def shape(maxilla, mandible, up, anterior, hinge, hinge_axis, *, clearance: floa
     V, F = closed_mesh(top, bottom, valid, g)
     t_mesh = time.perf_counter()
     seat = erode_mask(centre, g, TIP)  # cusps with the wafer all round them
-    from ..scenepair import apply_pose
-
     cusps = {"maxilla": cusp_tips(Vx, Fx, g, seat, band, -1, other=(Vd, Fd)),
              "mandible": apply_pose(op.pose, cusp_tips(Vd, Fd, g, seat, band, +1, other=(Vx, Fx)))}
     return WaferShape(V, F, float(np.degrees(op.theta)), op.source, op.pose, clearance, thickness, op.arch_gap, grid, cusps,
